@@ -1,0 +1,14 @@
+//! Compiles proto/prac/v1/prac.proto; protoc comes from `protoc-bin-vendored` unless PROTOC is set,
+//! because a fresh machine has no protoc.
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    if std::env::var_os("PROTOC").is_none() {
+        // SAFETY: build scripts are single-threaded at this point.
+        unsafe { std::env::set_var("PROTOC", protoc_bin_vendored::protoc_bin_path()?) };
+    }
+    let out_dir = std::path::PathBuf::from(std::env::var("OUT_DIR")?);
+    tonic_prost_build::configure()
+        .file_descriptor_set_path(out_dir.join("prac_descriptor.bin"))
+        .compile_protos(&["proto/prac/v1/prac.proto"], &["proto"])?;
+    println!("cargo:rerun-if-changed=proto/prac/v1/prac.proto");
+    Ok(())
+}

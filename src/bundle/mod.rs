@@ -1,0 +1,301 @@
+//! Weight bundles: one safetensors file per policy, f32 tensors named as Stable-Baselines3 names
+//! them (PyTorch [out, in] layout) plus `model.*`, and a JSON manifest in `__metadata__`.
+//! See docs/bundle-format.md.
+
+mod manifest;
+
+pub use manifest::*;
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+use sha2::{Digest, Sha256};
+
+use crate::nn::{Dense, Mlp};
+use crate::policy::{Actor, DynamicsModel, Policy};
+
+/// Key of the manifest JSON in `__metadata__`.
+pub const MANIFEST_KEY: &str = "manifest";
+/// Upper bound on a bundle file, to refuse absurd inputs before reading them.
+pub const MAX_BUNDLE_BYTES: u64 = 1 << 30;
+
+/// A bundle that cannot be used: names the file, the field (manifest key or tensor name) and why.
+#[derive(Debug, thiserror::Error)]
+#[error("{}: {field}: {reason}", file.display())]
+pub struct BundleError {
+    pub file: PathBuf,
+    pub field: String,
+    pub reason: String,
+}
+
+/// Names of the tensors of a network that SB3 builds as `nn.Sequential(Linear, act, Linear, ...)`:
+/// the i-th linear layer sits at index 2i.
+fn sequential_layer(prefix: &str, i: usize) -> (String, String) {
+    (
+        format!("{prefix}.{}.weight", 2 * i),
+        format!("{prefix}.{}.bias", 2 * i),
+    )
+}
+
+pub fn critic_prefix(k: usize) -> String {
+    format!("critic.qf{k}")
+}
+pub const ACTOR_TRUNK: &str = "actor.latent_pi";
+pub const ACTOR_MU: &str = "actor.mu";
+pub const ACTOR_LOG_STD: &str = "actor.log_std";
+pub const MODEL_NET: &str = "model.net";
+
+/// "sha256:<hex>" of some bytes.
+pub fn content_hash(bytes: &[u8]) -> String {
+    format!("sha256:{}", hex::encode(Sha256::digest(bytes)))
+}
+
+/// Reads, validates and builds a policy from a bundle file.
+pub fn load(path: &Path) -> Result<Policy, BundleError> {
+    let err = |field: &str, reason: String| BundleError {
+        file: path.to_path_buf(),
+        field: field.to_string(),
+        reason,
+    };
+    let size = std::fs::metadata(path)
+        .map_err(|e| err("file", format!("cannot read: {e}")))?
+        .len();
+    if size > MAX_BUNDLE_BYTES {
+        return Err(err(
+            "file",
+            format!("is {size} bytes, more than the {MAX_BUNDLE_BYTES} allowed"),
+        ));
+    }
+    let bytes = std::fs::read(path).map_err(|e| err("file", format!("cannot read: {e}")))?;
+    from_bytes(&bytes, path)
+}
+
+/// Validates and builds a policy from bundle bytes; `path` only names the source in errors.
+pub fn from_bytes(bytes: &[u8], path: &Path) -> Result<Policy, BundleError> {
+    let err = |field: &str, reason: String| BundleError {
+        file: path.to_path_buf(),
+        field: field.to_string(),
+        reason,
+    };
+    let (_, metadata) = SafeTensors::read_metadata(bytes).map_err(|e| {
+        err(
+            "safetensors header",
+            format!("not a valid safetensors file: {e}"),
+        )
+    })?;
+    let manifest_json = metadata
+        .metadata()
+        .as_ref()
+        .and_then(|m| m.get(MANIFEST_KEY))
+        .ok_or_else(|| {
+            err(
+                "__metadata__.manifest",
+                "missing: a prac bundle keeps its JSON manifest there".into(),
+            )
+        })?;
+    let manifest: Manifest = serde_json::from_str(manifest_json).map_err(|e| {
+        err(
+            "__metadata__.manifest",
+            format!("invalid manifest JSON: {e}"),
+        )
+    })?;
+    manifest
+        .validate()
+        .map_err(|(field, reason)| err(&format!("manifest.{field}"), reason))?;
+    let tensors = SafeTensors::deserialize(bytes).map_err(|e| {
+        err(
+            "safetensors data",
+            format!("not a valid safetensors file: {e}"),
+        )
+    })?;
+    let reader = TensorReader {
+        tensors: &tensors,
+        path,
+    };
+    let (obs, act) = (manifest.obs_dim, manifest.act_dim);
+
+    let trunk_layers = reader.chain(ACTOR_TRUNK, obs, &manifest.actor.hidden, None)?;
+    let trunk = Mlp::new(obs, trunk_layers, manifest.actor.activation, true)
+        .map_err(|e| err(ACTOR_TRUNK, e.to_string()))?;
+    let latent = trunk.output_dim();
+    let mu = reader.dense(
+        &format!("{ACTOR_MU}.weight"),
+        &format!("{ACTOR_MU}.bias"),
+        act,
+        latent,
+    )?;
+    let log_std = reader.dense(
+        &format!("{ACTOR_LOG_STD}.weight"),
+        &format!("{ACTOR_LOG_STD}.bias"),
+        act,
+        latent,
+    )?;
+    let mut critics = Vec::with_capacity(manifest.critic.n_critics);
+    for k in 0..manifest.critic.n_critics {
+        let prefix = critic_prefix(k);
+        let layers = reader.chain(&prefix, obs + act, &manifest.critic.hidden, Some(1))?;
+        critics.push(
+            Mlp::new(obs + act, layers, manifest.critic.activation, false)
+                .map_err(|e| err(&prefix, e.to_string()))?,
+        );
+    }
+    let model_layers = reader.chain(MODEL_NET, obs + act, &manifest.model.hidden, Some(obs))?;
+    let model_net = Mlp::new(obs + act, model_layers, manifest.model.activation, false)
+        .map_err(|e| err(MODEL_NET, e.to_string()))?;
+
+    Ok(Policy {
+        content_hash: content_hash(bytes),
+        actor: Actor { trunk, mu, log_std },
+        critics,
+        model: DynamicsModel {
+            net: model_net,
+            normalization: manifest.model_normalization.clone(),
+        },
+        manifest,
+    })
+}
+
+struct TensorReader<'a> {
+    tensors: &'a SafeTensors<'a>,
+    path: &'a Path,
+}
+
+impl TensorReader<'_> {
+    fn error(&self, field: &str, reason: String) -> BundleError {
+        BundleError {
+            file: self.path.to_path_buf(),
+            field: field.to_string(),
+            reason,
+        }
+    }
+
+    fn tensor(&self, name: &str, shape: &[usize]) -> Result<Vec<f32>, BundleError> {
+        let view: TensorView = self.tensors.tensor(name).map_err(|_| {
+            self.error(
+                name,
+                format!("missing tensor, expected shape {shape:?} f32"),
+            )
+        })?;
+        if view.dtype() != Dtype::F32 {
+            return Err(self.error(name, format!("dtype {:?}, expected F32", view.dtype())));
+        }
+        if view.shape() != shape {
+            return Err(self.error(
+                name,
+                format!("shape {:?}, expected {shape:?}", view.shape()),
+            ));
+        }
+        let values: Vec<f32> = view
+            .data()
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+            return Err(self.error(name, format!("element {i} is {}, not finite", values[i])));
+        }
+        Ok(values)
+    }
+
+    fn dense(
+        &self,
+        weight: &str,
+        bias: &str,
+        out: usize,
+        inp: usize,
+    ) -> Result<Dense, BundleError> {
+        let w = self.tensor(weight, &[out, inp])?;
+        let b = self.tensor(bias, &[out])?;
+        Ok(Dense::from_row_major(out, inp, &w, &b))
+    }
+
+    /// The layers of `prefix.{0,2,4,..}` with the given hidden widths and optional output width.
+    fn chain(
+        &self,
+        prefix: &str,
+        input: usize,
+        hidden: &[usize],
+        output: Option<usize>,
+    ) -> Result<Vec<Dense>, BundleError> {
+        let mut layers = Vec::new();
+        let mut width = input;
+        for (i, &out) in hidden.iter().chain(output.as_ref()).enumerate() {
+            let (w, b) = sequential_layer(prefix, i);
+            layers.push(self.dense(&w, &b, out, width)?);
+            width = out;
+        }
+        Ok(layers)
+    }
+}
+
+/// A named tensor in bundle layout: name, shape, row-major values.
+pub type NamedTensor = (String, Vec<usize>, Vec<f32>);
+
+/// The named tensors of a policy, in bundle layout.
+pub fn tensors(policy: &Policy) -> Vec<NamedTensor> {
+    fn push_dense(out: &mut Vec<NamedTensor>, prefix: &str, d: &Dense) {
+        push_layer(out, format!("{prefix}.weight"), format!("{prefix}.bias"), d);
+    }
+    fn push_layer(out: &mut Vec<NamedTensor>, weight: String, bias: String, d: &Dense) {
+        out.push((
+            weight,
+            vec![d.output_dim(), d.input_dim()],
+            d.weight_row_major(),
+        ));
+        out.push((bias, vec![d.output_dim()], d.bias.as_slice().to_vec()));
+    }
+    fn push_chain(out: &mut Vec<NamedTensor>, prefix: &str, mlp: &Mlp) {
+        for (i, d) in mlp.layers().iter().enumerate() {
+            let (w, b) = sequential_layer(prefix, i);
+            push_layer(out, w, b, d);
+        }
+    }
+    let mut out = Vec::new();
+    push_chain(&mut out, ACTOR_TRUNK, &policy.actor.trunk);
+    push_dense(&mut out, ACTOR_MU, &policy.actor.mu);
+    push_dense(&mut out, ACTOR_LOG_STD, &policy.actor.log_std);
+    for (k, critic) in policy.critics.iter().enumerate() {
+        push_chain(&mut out, &critic_prefix(k), critic);
+    }
+    push_chain(&mut out, MODEL_NET, &policy.model.net);
+    out
+}
+
+/// Serialises a policy (its manifest and networks) as bundle bytes.
+pub fn to_bytes(policy: &Policy) -> Result<Vec<u8>, safetensors::SafeTensorError> {
+    let tensors = tensors(policy);
+    let bytes: Vec<(String, Vec<usize>, Vec<u8>)> = tensors
+        .into_iter()
+        .map(|(name, shape, values)| {
+            let data = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+            (name, shape, data)
+        })
+        .collect();
+    let views: Vec<(String, TensorView)> = bytes
+        .iter()
+        .map(|(name, shape, data)| {
+            (
+                name.clone(),
+                TensorView::new(Dtype::F32, shape.clone(), data).expect("shape matches data"),
+            )
+        })
+        .collect();
+    let manifest = serde_json::to_string(&policy.manifest).expect("manifest serialises");
+    let metadata = HashMap::from([
+        ("format".to_string(), "prac-bundle".to_string()),
+        (MANIFEST_KEY.to_string(), manifest),
+    ]);
+    safetensors::serialize(views, Some(metadata))
+}
+
+/// Writes a policy as a bundle file (atomically: a temporary file renamed into place, so a server
+/// never reads half a bundle).
+pub fn save(policy: &Policy, path: &Path) -> std::io::Result<()> {
+    let bytes = to_bytes(policy).map_err(std::io::Error::other)?;
+    let tmp = path.with_extension("safetensors.tmp");
+    std::fs::write(&tmp, bytes)?;
+    std::fs::rename(&tmp, path)
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,249 @@
+use super::*;
+use crate::plan::Networks;
+use crate::policy::{Evaluator, test_manifest};
+use std::sync::Arc;
+
+fn small_policy() -> Policy {
+    Policy::random(test_manifest("small", "toy", 4, 2, &[8, 8], &[6, 6]), 7)
+}
+
+fn path() -> PathBuf {
+    PathBuf::from("bundles/small.safetensors")
+}
+
+/// Rebuilds a bundle from tensors and a manifest, so tests can corrupt either.
+fn rebuild(tensors: &[NamedTensor], manifest_json: Option<&str>) -> Vec<u8> {
+    let data: Vec<(String, Vec<usize>, Vec<u8>)> = tensors
+        .iter()
+        .map(|(n, s, v)| {
+            (
+                n.clone(),
+                s.clone(),
+                v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+            )
+        })
+        .collect();
+    let views: Vec<(String, TensorView)> = data
+        .iter()
+        .map(|(n, s, d)| {
+            (
+                n.clone(),
+                TensorView::new(Dtype::F32, s.clone(), d).unwrap(),
+            )
+        })
+        .collect();
+    let metadata =
+        manifest_json.map(|m| HashMap::from([(MANIFEST_KEY.to_string(), m.to_string())]));
+    safetensors::serialize(views, metadata).unwrap()
+}
+
+fn load_error(bytes: &[u8]) -> BundleError {
+    from_bytes(bytes, &path())
+        .err()
+        .expect("bundle must be rejected")
+}
+
+#[test]
+fn round_trip_preserves_every_output() {
+    let policy = small_policy();
+    let loaded = from_bytes(&to_bytes(&policy).unwrap(), &path()).unwrap();
+    assert_eq!(loaded.manifest, policy.manifest);
+    assert!(loaded.content_hash.starts_with("sha256:"));
+    let (mut a, mut b) = (
+        Evaluator::new(Arc::new(policy)),
+        Evaluator::new(Arc::new(loaded)),
+    );
+    let obs = [0.1, -0.3, 0.5, 0.9];
+    let (mut act_a, mut act_b) = ([0.0; 2], [0.0; 2]);
+    a.act(&obs, Some(&[0.3, -1.0]), &mut act_a);
+    b.act(&obs, Some(&[0.3, -1.0]), &mut act_b);
+    assert_eq!(act_a, act_b);
+    assert_eq!(a.q(&obs, &act_a), b.q(&obs, &act_b));
+    let (mut na, mut nb) = ([0.0; 4], [0.0; 4]);
+    a.predict_next(&obs, &act_a, &mut na);
+    b.predict_next(&obs, &act_b, &mut nb);
+    assert_eq!(na, nb);
+}
+
+#[test]
+fn tensor_names_follow_sb3() {
+    let names: Vec<String> = tensors(&small_policy()).into_iter().map(|t| t.0).collect();
+    for expected in [
+        "actor.latent_pi.0.weight",
+        "actor.latent_pi.2.bias",
+        "actor.mu.weight",
+        "actor.log_std.bias",
+        "critic.qf0.0.weight",
+        "critic.qf1.4.bias",
+        "model.net.0.weight",
+        "model.net.4.bias",
+    ] {
+        assert!(
+            names.iter().any(|n| n == expected),
+            "{expected} missing from {names:?}"
+        );
+    }
+    let shapes: HashMap<String, Vec<usize>> = tensors(&small_policy())
+        .into_iter()
+        .map(|t| (t.0, t.1))
+        .collect();
+    // PyTorch layout: [out, in].
+    assert_eq!(shapes["actor.latent_pi.0.weight"], vec![8, 4]);
+    assert_eq!(shapes["critic.qf0.0.weight"], vec![8, 6]);
+    assert_eq!(shapes["critic.qf0.4.weight"], vec![1, 8]);
+    assert_eq!(shapes["model.net.4.weight"], vec![4, 6]);
+}
+
+#[test]
+fn a_missing_tensor_is_named() {
+    let policy = small_policy();
+    let json = serde_json::to_string(&policy.manifest).unwrap();
+    let tensors: Vec<_> = tensors(&policy)
+        .into_iter()
+        .filter(|t| t.0 != "critic.qf1.2.weight")
+        .collect();
+    let e = load_error(&rebuild(&tensors, Some(&json)));
+    assert_eq!(e.field, "critic.qf1.2.weight");
+    assert!(e.reason.contains("missing"), "{e}");
+    assert!(
+        e.to_string()
+            .starts_with("bundles/small.safetensors: critic.qf1.2.weight")
+    );
+}
+
+#[test]
+fn a_wrong_shape_is_named_with_both_shapes() {
+    let policy = small_policy();
+    let json = serde_json::to_string(&policy.manifest).unwrap();
+    let mut tensors = tensors(&policy);
+    let t = tensors
+        .iter_mut()
+        .find(|t| t.0 == "actor.mu.weight")
+        .unwrap();
+    t.1 = vec![2, 7];
+    t.2.truncate(14);
+    let e = load_error(&rebuild(&tensors, Some(&json)));
+    assert_eq!(e.field, "actor.mu.weight");
+    assert!(
+        e.reason.contains("[2, 7]") && e.reason.contains("[2, 8]"),
+        "{e}"
+    );
+}
+
+#[test]
+fn a_non_finite_weight_is_named() {
+    let policy = small_policy();
+    let json = serde_json::to_string(&policy.manifest).unwrap();
+    let mut tensors = tensors(&policy);
+    tensors
+        .iter_mut()
+        .find(|t| t.0 == "model.net.2.bias")
+        .unwrap()
+        .2[3] = f32::NAN;
+    let e = load_error(&rebuild(&tensors, Some(&json)));
+    assert_eq!(e.field, "model.net.2.bias");
+    assert!(e.reason.contains("element 3"), "{e}");
+}
+
+#[test]
+fn manifest_problems_are_named() {
+    let policy = small_policy();
+    let tensors = tensors(&policy);
+    let e = load_error(&rebuild(&tensors, None));
+    assert_eq!(e.field, "__metadata__.manifest");
+    let e = load_error(&rebuild(&tensors, Some("{not json")));
+    assert!(e.reason.contains("invalid manifest JSON"), "{e}");
+
+    let cases: Vec<(fn(&mut Manifest), &str)> = vec![
+        (|m| m.format_version = 9, "manifest.format_version"),
+        (|m| m.obs_dim = 0, "manifest.obs_dim"),
+        (|m| m.action_high = vec![1.0], "manifest.action_high"),
+        (|m| m.action_low[1] = 2.0, "manifest.action_low[1]"),
+        (|m| m.gamma = 1.5, "manifest.gamma"),
+        (|m| m.critic.n_critics = 0, "manifest.critic.n_critics"),
+        (
+            |m| m.model_normalization.delta_std[2] = 0.0,
+            "manifest.model_normalization.delta_std[2]",
+        ),
+        (
+            |m| m.model_normalization.obs_mean.push(0.0),
+            "manifest.model_normalization.obs_mean",
+        ),
+    ];
+    for (corrupt, field) in cases {
+        let mut manifest = policy.manifest.clone();
+        corrupt(&mut manifest);
+        let json = serde_json::to_string(&manifest).unwrap();
+        let e = load_error(&rebuild(&tensors, Some(&json)));
+        assert_eq!(e.field, field, "{e}");
+    }
+    // A manifest whose dimensions disagree with the tensors: the tensor is named.
+    let mut manifest = policy.manifest.clone();
+    manifest.actor.hidden = vec![8, 9];
+    let e = load_error(&rebuild(
+        &tensors,
+        Some(&serde_json::to_string(&manifest).unwrap()),
+    ));
+    assert_eq!(e.field, "actor.latent_pi.2.weight");
+}
+
+#[test]
+fn truncated_and_garbage_files_are_rejected() {
+    let bytes = to_bytes(&small_policy()).unwrap();
+    for cut in [0, 7, 8, 100, bytes.len() / 2, bytes.len() - 1] {
+        let e = load_error(&bytes[..cut]);
+        assert!(e.field.starts_with("safetensors"), "cut {cut}: {e}");
+    }
+    let e = load_error(b"\xff\xff\xff\xff\xff\xff\xff\x7fgarbage");
+    assert!(e.field.starts_with("safetensors"), "{e}");
+}
+
+#[test]
+fn a_wrong_dtype_is_named() {
+    let policy = small_policy();
+    let json = serde_json::to_string(&policy.manifest).unwrap();
+    let tensors = tensors(&policy);
+    let data: Vec<(String, Vec<usize>, Vec<u8>)> = tensors
+        .iter()
+        .map(|(n, s, v)| {
+            let bytes = if n == "actor.mu.bias" {
+                v.iter().flat_map(|x| (*x as f64).to_le_bytes()).collect()
+            } else {
+                v.iter().flat_map(|x| x.to_le_bytes()).collect()
+            };
+            (n.clone(), s.clone(), bytes)
+        })
+        .collect();
+    let views: Vec<(String, TensorView)> = data
+        .iter()
+        .map(|(n, s, d)| {
+            let dtype = if n == "actor.mu.bias" {
+                Dtype::F64
+            } else {
+                Dtype::F32
+            };
+            (n.clone(), TensorView::new(dtype, s.clone(), d).unwrap())
+        })
+        .collect();
+    let bytes = safetensors::serialize(
+        views,
+        Some(HashMap::from([(MANIFEST_KEY.to_string(), json)])),
+    )
+    .unwrap();
+    let e = load_error(&bytes);
+    assert_eq!(e.field, "actor.mu.bias");
+    assert!(e.reason.contains("F64"), "{e}");
+}
+
+#[test]
+fn save_and_load_a_file() {
+    let dir = std::env::temp_dir().join(format!("prac-bundle-test-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("small.safetensors");
+    save(&small_policy(), &file).unwrap();
+    let loaded = load(&file).unwrap();
+    assert_eq!(loaded.manifest.name, "small");
+    let e = load(&dir.join("absent.safetensors")).unwrap_err();
+    assert_eq!(e.field, "file");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -1,0 +1,78 @@
+//! `prac inspect FILE [--json]`: the manifest of a bundle and one forward pass.
+
+use std::path::Path;
+use std::sync::Arc;
+
+use crate::bundle;
+use crate::plan::Networks;
+use crate::policy::Evaluator;
+
+/// Loads the bundle (with full validation) and describes it; with `json`, prints only the
+/// manifest as JSON.
+pub fn run(path: &Path, json: bool) -> anyhow::Result<String> {
+    let policy = Arc::new(bundle::load(path)?);
+    let m = &policy.manifest;
+    if json {
+        return Ok(serde_json::to_string_pretty(m)? + "\n");
+    }
+    let mut out = String::new();
+    let mut line = |s: String| {
+        out.push_str(&s);
+        out.push('\n');
+    };
+    line(format!("bundle       {}", path.display()));
+    line(format!("content      {}", policy.content_hash));
+    line(format!("format       v{}", m.format_version));
+    line(format!("name         {}", m.name));
+    line(format!("domain       {}", m.domain));
+    line(format!("obs_dim      {}", m.obs_dim));
+    line(format!("act_dim      {}", m.act_dim));
+    line(format!("action_low   {:?}", m.action_low));
+    line(format!("action_high  {:?}", m.action_high));
+    line(format!("gamma        {}", m.gamma));
+    line(format!(
+        "actor        hidden {:?} {:?}",
+        m.actor.hidden, m.actor.activation
+    ));
+    line(format!(
+        "critics      {} x hidden {:?} {:?}, Q = {} of critics",
+        m.critic.n_critics,
+        m.critic.hidden,
+        m.critic.activation,
+        m.q_aggregation.as_str()
+    ));
+    line(format!(
+        "model        hidden {:?} {:?}, predicts normalised s' - s",
+        m.model.hidden, m.model.activation
+    ));
+    match m.value_scale {
+        Some(v) => line(format!(
+            "value scale  V_pi(s0) = {}, V_rand(s0) = {} (eps = coef x {})",
+            v.v_pi,
+            v.v_rand,
+            v.v_pi - v.v_rand
+        )),
+        None => line("value scale  none (absolute eps only)".to_string()),
+    }
+    let p = &m.provenance;
+    line(format!(
+        "provenance   {} | {} steps | seed {} | {}",
+        p.trainer, p.steps, p.seed, p.date
+    ));
+
+    // One forward pass at the model's mean observation, a state of the training distribution.
+    let obs = m.model_normalization.obs_mean.clone();
+    let mut eval = Evaluator::new(policy.clone());
+    let mut squashed = vec![0.0; m.act_dim];
+    eval.act(&obs, None, &mut squashed);
+    let q = eval.q(&obs, &squashed);
+    let mut next = vec![0.0; m.obs_dim];
+    eval.predict_next(&obs, &squashed, &mut next);
+    let mut action = vec![0.0; m.act_dim];
+    policy.unscale_action(&squashed, &mut action);
+    line("forward pass at s = model_normalization.obs_mean:".to_string());
+    line(format!("  pi(s)      {action:?}"));
+    line(format!("  Q(s,pi(s)) {q}"));
+    line(format!("  P(s,pi(s)) {next:?}"));
+    Ok(out)
+}

@@ -1,0 +1,21 @@
+//! prac: predictable actor-critic control (PrAC) served over gRPC.
+//!
+//! - [`nn`]: f32 MLPs on nalgebra.
+//! - [`bundle`]: the safetensors weight-bundle format.
+//! - [`policy`]: a loaded policy's networks and the per-session evaluator.
+//! - [`plan`]: Replan (Algorithm 2), shared by serving and training.
+//! - [`serve`]: the gRPC daemon.
+//! - [`cli`]: `prac inspect` and `prac bench-replan`.
+
+pub mod bundle;
+pub mod cli;
+pub mod nn;
+pub mod plan;
+pub mod policy;
+pub mod serve;
+
+pub mod proto {
+    //! Generated from proto/prac/v1/prac.proto.
+    tonic::include_proto!("prac.v1");
+    pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("prac_descriptor");
+}

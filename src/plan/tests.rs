@@ -1,0 +1,369 @@
+//! Replan against networks whose answers are known in closed form: a linear policy, the critic
+//! Q(s, a) = -|a - pi(s)|^2 (so pi is exactly greedy), and a linear model that is also the
+//! environment (an exact model).
+
+use super::*;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+const OBS: usize = 2;
+const ACT: usize = 1;
+
+struct ClosedForm {
+    /// Added to the model's prediction, to make it inexact.
+    model_bias: f32,
+    /// Makes the model return NaN.
+    broken_model: bool,
+}
+
+impl ClosedForm {
+    fn exact() -> Self {
+        ClosedForm {
+            model_bias: 0.0,
+            broken_model: false,
+        }
+    }
+    fn mean_action(obs: &[f32]) -> f32 {
+        (0.8 * obs[0] - 0.5 * obs[1]).tanh()
+    }
+}
+
+/// The true environment, which the exact model reproduces bit for bit.
+fn env_step(obs: &[f32], action: &[f32]) -> [f32; OBS] {
+    [
+        0.9 * obs[0] + 0.1 * obs[1],
+        -0.2 * obs[0] + 0.95 * obs[1] + 0.3 * action[0],
+    ]
+}
+
+impl Networks for ClosedForm {
+    fn obs_dim(&self) -> usize {
+        OBS
+    }
+    fn act_dim(&self) -> usize {
+        ACT
+    }
+    fn act(&mut self, obs: &[f32], noise: Option<&[f32]>, action: &mut [f32]) {
+        let u = (0.8 * obs[0] - 0.5 * obs[1]) + noise.map_or(0.0, |z| 0.3 * z[0]);
+        action[0] = u.tanh();
+    }
+    fn q(&mut self, obs: &[f32], action: &[f32]) -> f32 {
+        let d = action[0] - Self::mean_action(obs);
+        -d * d
+    }
+    fn predict_next(&mut self, obs: &[f32], action: &[f32], next_obs: &mut [f32]) {
+        let n = env_step(obs, action);
+        next_obs[0] = if self.broken_model {
+            f32::NAN
+        } else {
+            n[0] + self.model_bias
+        };
+        next_obs[1] = n[1] + self.model_bias;
+    }
+}
+
+struct Episode {
+    nets: ClosedForm,
+    config: ReplanConfig,
+    plan: Plan,
+    spare: Plan,
+    scratch: ReplanScratch,
+    rng: ChaCha8Rng,
+    obs: [f32; OBS],
+    t: u64,
+}
+
+struct StepRecord {
+    outcome: ReplanOutcome,
+    plan: Plan,
+    executed: f32,
+    f_t: u64,
+    obs: [f32; OBS],
+}
+
+impl Episode {
+    fn new(nets: ClosedForm, config: ReplanConfig, seed: u64) -> Self {
+        let cap = config.max_horizon + 4;
+        Episode {
+            nets,
+            config,
+            plan: Plan::with_capacity(OBS, ACT, cap),
+            spare: Plan::with_capacity(OBS, ACT, cap),
+            scratch: ReplanScratch::new(OBS, ACT),
+            rng: ChaCha8Rng::seed_from_u64(seed),
+            obs: [0.7, -0.4],
+            t: 0,
+        }
+    }
+
+    /// Algorithm 1's loop: replan on the observed state (the old plan minus the action already
+    /// executed), execute the first action, observe the true next state.
+    fn step(&mut self) -> StepRecord {
+        let old = if self.t == 0 {
+            PlanView::empty()
+        } else {
+            self.plan.tail(1)
+        };
+        let outcome = replan(
+            &mut self.nets,
+            &self.config,
+            &self.obs,
+            self.t,
+            old,
+            &mut self.spare,
+            &mut self.scratch,
+            &mut self.rng,
+        )
+        .unwrap();
+        std::mem::swap(&mut self.plan, &mut self.spare);
+        let executed = self.plan.action(0)[0];
+        let f_t = self.t + 1 - self.plan.decided_at(0);
+        let obs = self.obs;
+        self.obs = env_step(&self.obs, &[executed]);
+        self.t += 1;
+        StepRecord {
+            outcome,
+            plan: self.plan.clone(),
+            executed,
+            f_t,
+            obs,
+        }
+    }
+}
+
+fn huge_eps(growth: Growth, max_horizon: usize) -> ReplanConfig {
+    ReplanConfig {
+        epsilon: 1e9,
+        growth,
+        max_horizon,
+        sampled: false,
+    }
+}
+
+#[test]
+fn eps_zero_with_exact_model_keeps_plans_equal_to_pi() {
+    let mut ep = Episode::new(ClosedForm::exact(), ReplanConfig::default(), 0);
+    for t in 0..100 {
+        let rec = ep.step();
+        // The executed action is exactly the policy's action at the true state...
+        assert_eq!(rec.executed, ClosedForm::mean_action(&rec.obs), "step {t}");
+        // ...and every planned action is pi at the model's (exact) imagined state.
+        let mut s = rec.obs;
+        for j in 0..rec.plan.len() {
+            assert_eq!(rec.plan.action(j)[0], ClosedForm::mean_action(&s));
+            s = env_step(&s, rec.plan.action(j));
+            assert_eq!(rec.plan.next_obs(j), &s);
+        }
+        // Nothing ever breaks, so the plan is the whole old plan plus k new actions.
+        assert_eq!(rec.outcome.broke_at, None);
+        let expected_len = (2 + t).min(DEFAULT_MAX_HORIZON);
+        assert_eq!(rec.plan.len(), expected_len, "step {t}");
+    }
+}
+
+#[test]
+fn huge_eps_never_breaks_and_grows_by_k_minus_1_to_the_cap() {
+    for k in [1usize, 2, 3, 5] {
+        let cap = 10;
+        let mut ep = Episode::new(
+            ClosedForm {
+                model_bias: 0.5,
+                broken_model: false,
+            },
+            huge_eps(Growth::Grow(k), cap),
+            1,
+        );
+        for t in 0..30usize {
+            let rec = ep.step();
+            assert_eq!(rec.outcome.broke_at, None);
+            let expected = (k + t * (k - 1)).min(cap);
+            assert_eq!(rec.plan.len(), expected, "k {k} step {t}");
+            let kept_expected = if t == 0 {
+                0
+            } else {
+                (k + (t - 1) * (k - 1)).min(cap) - 1
+            };
+            assert_eq!(rec.outcome.kept, kept_expected, "k {k} step {t}");
+        }
+    }
+}
+
+#[test]
+fn fixed_mode_refills_to_n() {
+    let n = 6;
+    let mut ep = Episode::new(
+        ClosedForm {
+            model_bias: 0.3,
+            broken_model: false,
+        },
+        huge_eps(Growth::Fixed(n), 32),
+        2,
+    );
+    for t in 0..20 {
+        let rec = ep.step();
+        assert_eq!(rec.plan.len(), n);
+        assert_eq!(rec.outcome.kept, if t == 0 { 0 } else { n - 1 });
+        assert_eq!(rec.outcome.appended, if t == 0 { n } else { 1 });
+    }
+    // Fixed n is still capped by the max horizon.
+    let mut capped = Episode::new(ClosedForm::exact(), huge_eps(Growth::Fixed(50), 8), 2);
+    assert_eq!(capped.step().plan.len(), 8);
+}
+
+#[test]
+fn a_planted_bad_action_breaks_exactly_at_its_index() {
+    let mut nets = ClosedForm::exact();
+    let config = ReplanConfig {
+        epsilon: 0.01,
+        growth: Growth::Grow(2),
+        max_horizon: 32,
+        sampled: false,
+    };
+    let state = [0.3f32, 0.2];
+    // An old plan of the policy's own actions along the exact rollout, decided at step 4...
+    let mut old = Plan::with_capacity(OBS, ACT, 16);
+    let mut s = state;
+    for _ in 0..8 {
+        let a = [ClosedForm::mean_action(&s)];
+        let next = env_step(&s, &a);
+        old.push(&a, &next, 4);
+        s = next;
+    }
+    for bad in [0usize, 3, 7] {
+        let mut planted = Plan::with_capacity(OBS, ACT, 16);
+        for j in 0..old.len() {
+            let a = old.action(j)[0];
+            // -|d|^2 = -0.25 < -eps: this action must break the plan.
+            let a = if j == bad { (a - 0.5).max(-1.0) } else { a };
+            planted.push(&[a], old.next_obs(j), old.decided_at(j));
+        }
+        let mut new = Plan::with_capacity(OBS, ACT, 40);
+        let mut scratch = ReplanScratch::new(OBS, ACT);
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let outcome = replan(
+            &mut nets,
+            &config,
+            &state,
+            5,
+            planted.tail(0),
+            &mut new,
+            &mut scratch,
+            &mut rng,
+        )
+        .unwrap();
+        assert_eq!(outcome.broke_at, Some(bad));
+        assert_eq!(outcome.kept, bad);
+        assert_eq!(outcome.appended, 2);
+        assert_eq!(new.len(), bad + 2);
+        for j in 0..bad {
+            assert_eq!(new.action(j), planted.action(j));
+            assert_eq!(new.decided_at(j), 4);
+        }
+        // The replacement is pi at the breaking state, decided now.
+        let mut s = state;
+        for j in 0..bad {
+            s = env_step(&s, new.action(j));
+        }
+        assert_eq!(new.action(bad)[0], ClosedForm::mean_action(&s));
+        assert_eq!(new.decided_at(bad), 5);
+    }
+}
+
+#[test]
+fn forecast_f_t_over_an_episode() {
+    // Grow 2 that never breaks: a_t was decided at floor(t / 2), so f_t = floor((t + 1) / 2) + 1
+    // until the cap bounds it.
+    let mut ep = Episode::new(ClosedForm::exact(), huge_eps(Growth::Grow(2), 1000), 3);
+    for t in 0..50u64 {
+        assert_eq!(ep.step().f_t, (t + 1) / 2 + 1, "step {t}");
+    }
+    // Capped at H: the plan is H long and every action waits H - 1 steps, so f_t reaches H.
+    let h = 4;
+    let mut capped = Episode::new(ClosedForm::exact(), huge_eps(Growth::Grow(2), h), 3);
+    let f: Vec<u64> = (0..12).map(|_| capped.step().f_t).collect();
+    assert_eq!(f, vec![1, 2, 2, 3, 3, 4, 4, 4, 4, 4, 4, 4]);
+    // A model that is always wrong under eps = 0 breaks at the first action every step: f_t = 1.
+    let mut breaking = Episode::new(
+        ClosedForm {
+            model_bias: 0.2,
+            broken_model: false,
+        },
+        ReplanConfig::default(),
+        3,
+    );
+    for t in 0..20 {
+        let rec = breaking.step();
+        assert_eq!(rec.f_t, 1, "step {t}");
+        if t > 0 {
+            assert_eq!(rec.outcome.broke_at, Some(0));
+        }
+    }
+}
+
+#[test]
+fn sampled_mode_is_reproducible_from_its_seed() {
+    let config = ReplanConfig {
+        sampled: true,
+        ..ReplanConfig::default()
+    };
+    let run = |seed: u64| -> Vec<f32> {
+        let mut ep = Episode::new(ClosedForm::exact(), config, seed);
+        (0..30).map(|_| ep.step().executed).collect()
+    };
+    assert_eq!(run(11), run(11));
+    assert_ne!(run(11), run(12));
+    // Sampled actions differ from the deterministic mean.
+    let mut det = Episode::new(ClosedForm::exact(), ReplanConfig::default(), 11);
+    let det: Vec<f32> = (0..30).map(|_| det.step().executed).collect();
+    assert_ne!(run(11), det);
+}
+
+#[test]
+fn an_old_plan_longer_than_the_cap_is_truncated() {
+    let mut nets = ClosedForm::exact();
+    let config = huge_eps(Growth::Grow(2), 5);
+    let mut old = Plan::with_capacity(OBS, ACT, 12);
+    for _ in 0..12 {
+        old.push(&[0.1], &[0.0, 0.0], 0);
+    }
+    let mut new = Plan::with_capacity(OBS, ACT, 12);
+    let outcome = replan(
+        &mut nets,
+        &config,
+        &[0.0, 0.0],
+        1,
+        old.tail(0),
+        &mut new,
+        &mut ReplanScratch::new(OBS, ACT),
+        &mut ChaCha8Rng::seed_from_u64(0),
+    )
+    .unwrap();
+    assert_eq!((outcome.kept, outcome.appended, new.len()), (5, 0, 5));
+}
+
+#[test]
+fn a_non_finite_model_is_an_error_not_a_plan() {
+    let mut nets = ClosedForm {
+        model_bias: 0.0,
+        broken_model: true,
+    };
+    let mut new = Plan::with_capacity(OBS, ACT, 4);
+    let err = replan(
+        &mut nets,
+        &ReplanConfig::default(),
+        &[0.0, 0.0],
+        0,
+        PlanView::empty(),
+        &mut new,
+        &mut ReplanScratch::new(OBS, ACT),
+        &mut ChaCha8Rng::seed_from_u64(0),
+    )
+    .unwrap_err();
+    assert_eq!(
+        err,
+        NonFinite {
+            what: "model",
+            index: 0
+        }
+    );
+}

@@ -1,0 +1,195 @@
+//! `prac serve` settings: command-line flags over an optional TOML file over defaults.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::Context;
+use serde::Deserialize;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum LogFormat {
+    Text,
+    Json,
+}
+
+/// Flags of `prac serve`; each overrides the same key of the `--config` file.
+#[derive(Clone, Debug, Default, clap::Args)]
+pub struct ServeArgs {
+    /// TOML file with any of the keys below (snake_case, e.g. max_sessions = 64).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Address to listen on [default: 127.0.0.1:50051]; port 0 picks a free port.
+    #[arg(long)]
+    pub listen: Option<SocketAddr>,
+    /// Directory of NAME.safetensors bundles [default: bundles/ in the repository].
+    #[arg(long)]
+    pub bundles: Option<PathBuf>,
+    /// Most sessions open at once [default: 1024].
+    #[arg(long)]
+    pub max_sessions: Option<usize>,
+    /// A session unused for this long is evicted, e.g. "5m" [default: 5m].
+    #[arg(long, value_parser = humantime::parse_duration)]
+    pub session_ttl: Option<Duration>,
+    /// Largest gRPC message accepted or sent, in bytes [default: 4194304].
+    #[arg(long)]
+    pub max_message_bytes: Option<usize>,
+    /// On SIGINT/SIGTERM, how long to wait for in-flight work before exiting [default: 10s].
+    #[arg(long, value_parser = humantime::parse_duration)]
+    pub drain_timeout: Option<Duration>,
+    /// Log format on stderr [default: text].
+    #[arg(long, value_enum)]
+    pub log_format: Option<LogFormat>,
+    /// Refuse to start if any bundle fails to load (default: skip it with an error).
+    #[arg(long)]
+    pub strict: bool,
+    /// Largest max_horizon, grow k or fixed n a session may ask for [default: 1024].
+    #[arg(long)]
+    pub max_horizon_limit: Option<usize>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FileConfig {
+    listen: Option<SocketAddr>,
+    bundles: Option<PathBuf>,
+    max_sessions: Option<usize>,
+    session_ttl: Option<String>,
+    max_message_bytes: Option<usize>,
+    drain_timeout: Option<String>,
+    log_format: Option<LogFormat>,
+    strict: Option<bool>,
+    max_horizon_limit: Option<usize>,
+}
+
+/// The settings in force.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ServeConfig {
+    pub listen: SocketAddr,
+    pub bundles: PathBuf,
+    pub max_sessions: usize,
+    pub session_ttl: Duration,
+    pub max_message_bytes: usize,
+    pub drain_timeout: Duration,
+    pub log_format: LogFormat,
+    pub strict: bool,
+    pub max_horizon_limit: usize,
+}
+
+/// The repository's bundle directory, which the training issues fill.
+pub fn default_bundle_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("bundles")
+}
+
+impl Default for ServeConfig {
+    fn default() -> Self {
+        ServeConfig {
+            listen: SocketAddr::from(([127, 0, 0, 1], 50051)),
+            bundles: default_bundle_dir(),
+            max_sessions: 1024,
+            session_ttl: Duration::from_secs(300),
+            max_message_bytes: 4 << 20,
+            drain_timeout: Duration::from_secs(10),
+            log_format: LogFormat::Text,
+            strict: false,
+            max_horizon_limit: 1024,
+        }
+    }
+}
+
+fn duration(key: &str, text: Option<String>) -> anyhow::Result<Option<Duration>> {
+    text.map(|t| {
+        humantime::parse_duration(&t)
+            .with_context(|| format!("{key} = {t:?} is not a duration such as \"30s\" or \"5m\""))
+    })
+    .transpose()
+}
+
+impl ServeConfig {
+    pub fn resolve(args: &ServeArgs) -> anyhow::Result<ServeConfig> {
+        let file = match &args.config {
+            Some(path) => {
+                let text = std::fs::read_to_string(path)
+                    .with_context(|| format!("cannot read config {}", path.display()))?;
+                toml::from_str::<FileConfig>(&text)
+                    .with_context(|| format!("invalid config {}", path.display()))?
+            }
+            None => FileConfig::default(),
+        };
+        let d = ServeConfig::default();
+        let config = ServeConfig {
+            listen: args.listen.or(file.listen).unwrap_or(d.listen),
+            bundles: args.bundles.clone().or(file.bundles).unwrap_or(d.bundles),
+            max_sessions: args
+                .max_sessions
+                .or(file.max_sessions)
+                .unwrap_or(d.max_sessions),
+            session_ttl: args
+                .session_ttl
+                .or(duration("session_ttl", file.session_ttl)?)
+                .unwrap_or(d.session_ttl),
+            max_message_bytes: args
+                .max_message_bytes
+                .or(file.max_message_bytes)
+                .unwrap_or(d.max_message_bytes),
+            drain_timeout: args
+                .drain_timeout
+                .or(duration("drain_timeout", file.drain_timeout)?)
+                .unwrap_or(d.drain_timeout),
+            log_format: args.log_format.or(file.log_format).unwrap_or(d.log_format),
+            strict: args.strict || file.strict.unwrap_or(false),
+            max_horizon_limit: args
+                .max_horizon_limit
+                .or(file.max_horizon_limit)
+                .unwrap_or(d.max_horizon_limit),
+        };
+        anyhow::ensure!(config.max_sessions > 0, "max_sessions must be at least 1");
+        anyhow::ensure!(
+            config.max_horizon_limit > 0,
+            "max_horizon_limit must be at least 1"
+        );
+        anyhow::ensure!(
+            config.max_message_bytes >= 1024,
+            "max_message_bytes must be at least 1024"
+        );
+        anyhow::ensure!(
+            !config.session_ttl.is_zero(),
+            "session_ttl must be positive"
+        );
+        Ok(config)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn flags_override_the_file_which_overrides_defaults() {
+        let dir = std::env::temp_dir().join(format!("prac-config-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("prac.toml");
+        std::fs::write(
+            &file,
+            "max_sessions = 7\nsession_ttl = \"2m\"\nlog_format = \"json\"\nlisten = \"0.0.0.0:9000\"\n",
+        )
+        .unwrap();
+        let args = ServeArgs {
+            config: Some(file.clone()),
+            max_sessions: Some(9),
+            ..Default::default()
+        };
+        let c = ServeConfig::resolve(&args).unwrap();
+        assert_eq!(c.max_sessions, 9);
+        assert_eq!(c.session_ttl, Duration::from_secs(120));
+        assert_eq!(c.log_format, LogFormat::Json);
+        assert_eq!(c.listen, "0.0.0.0:9000".parse().unwrap());
+        assert_eq!(c.drain_timeout, Duration::from_secs(10));
+
+        std::fs::write(&file, "max_sesions = 7\n").unwrap();
+        let err = ServeConfig::resolve(&args).unwrap_err();
+        assert!(format!("{err:#}").contains("max_sesions"), "{err:#}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

@@ -1,0 +1,199 @@
+//! `prac serve`: the gRPC daemon.
+
+pub mod config;
+pub mod registry;
+pub mod service;
+pub mod session;
+
+use std::sync::{Arc, RwLock};
+use std::time::Duration;
+
+use anyhow::Context;
+use futures::StreamExt;
+use tokio::net::TcpListener;
+use tokio_stream::wrappers::TcpListenerStream;
+use tokio_util::sync::CancellationToken;
+use tonic_health::ServingStatus;
+
+pub use config::{LogFormat, ServeArgs, ServeConfig};
+use registry::Registry;
+use service::{PracService, ServerState};
+use session::Sessions;
+
+use crate::proto::{self, prac_server::PracServer};
+
+/// Sets up tracing on stderr in the chosen format (RUST_LOG overrides the level, default info).
+pub fn init_logging(format: LogFormat) {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
+    let _ = match format {
+        LogFormat::Text => builder.try_init(),
+        LogFormat::Json => builder.json().try_init(),
+    };
+}
+
+/// Resolves when the process gets SIGINT or SIGTERM.
+async fn termination_signal() {
+    let ctrl_c = tokio::signal::ctrl_c();
+    #[cfg(unix)]
+    {
+        let mut term = match tokio::signal::unix::signal(
+            tokio::signal::unix::SignalKind::terminate(),
+        ) {
+            Ok(term) => term,
+            Err(e) => {
+                tracing::error!(error = %e, "cannot listen for SIGTERM; only SIGINT stops the server");
+                let _ = ctrl_c.await;
+                return;
+            }
+        };
+        tokio::select! {
+            _ = ctrl_c => {}
+            _ = term.recv() => {}
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = ctrl_c.await;
+}
+
+/// Runs the server until SIGINT/SIGTERM. Prints `listening on ADDR` on stdout once bound (port 0
+/// picks a free port; scripts and tests read that line).
+pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
+    let listener = TcpListener::bind(config.listen)
+        .await
+        .with_context(|| format!("cannot listen on {}", config.listen))?;
+    let addr = listener.local_addr()?;
+
+    let (health, health_service) = tonic_health::server::health_reporter();
+    let set_health = |status: ServingStatus| {
+        let health = health.clone();
+        async move {
+            health.set_service_status("", status).await;
+            health
+                .set_service_status(
+                    <PracServer<PracService> as tonic::server::NamedService>::NAME,
+                    status,
+                )
+                .await;
+        }
+    };
+    set_health(ServingStatus::NotServing).await;
+
+    let reflection = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
+        .build_v1()
+        .context("building the reflection service")?;
+
+    let shutdown = CancellationToken::new();
+    let state = Arc::new(ServerState {
+        registry: RwLock::new(None),
+        sessions: Sessions::new(config.max_sessions, config.session_ttl),
+        max_horizon_limit: config.max_horizon_limit,
+        shutdown: shutdown.clone(),
+    });
+    let prac = PracServer::new(PracService {
+        state: state.clone(),
+    })
+    .max_decoding_message_size(config.max_message_bytes)
+    .max_encoding_message_size(config.max_message_bytes);
+
+    // Low latency matters more than packet count for one-step round trips.
+    let incoming = TcpListenerStream::new(listener).map(|conn| {
+        conn.inspect(|stream| {
+            let _ = stream.set_nodelay(true);
+        })
+    });
+    let server = tonic::transport::Server::builder()
+        .add_service(health_service)
+        .add_service(reflection)
+        .add_service(prac)
+        .serve_with_incoming_shutdown(incoming, shutdown.clone().cancelled_owned());
+    let mut server = tokio::spawn(server);
+    println!("listening on {addr}");
+    tracing::info!(%addr, bundles = %config.bundles.display(), "listening");
+
+    tokio::spawn({
+        let shutdown = shutdown.clone();
+        async move {
+            termination_signal().await;
+            tracing::info!("shutdown requested: draining");
+            shutdown.cancel();
+        }
+    });
+
+    let dir = config.bundles.clone();
+    let loaded = tokio::task::spawn_blocking(move || Registry::load_dir(&dir)).await?;
+    let loaded = match loaded {
+        Ok(loaded) => loaded,
+        Err(e) => {
+            shutdown.cancel();
+            return Err(e).with_context(|| {
+                format!("cannot read bundle directory {}", config.bundles.display())
+            });
+        }
+    };
+    for error in &loaded.errors {
+        tracing::error!(%error, "skipping bad bundle");
+    }
+    if config.strict && !loaded.errors.is_empty() {
+        shutdown.cancel();
+        anyhow::bail!(
+            "{} bad bundle(s) and --strict: {}",
+            loaded.errors.len(),
+            loaded
+                .errors
+                .iter()
+                .map(ToString::to_string)
+                .collect::<Vec<_>>()
+                .join("; ")
+        );
+    }
+    let count = loaded.registry.len();
+    *state.registry.write().unwrap_or_else(|p| p.into_inner()) = Some(Arc::new(loaded.registry));
+    if count == 0 {
+        tracing::warn!(dir = %config.bundles.display(), "no bundles loaded; health stays NOT_SERVING");
+    } else if !shutdown.is_cancelled() {
+        set_health(ServingStatus::Serving).await;
+        tracing::info!(policies = count, "serving");
+    }
+
+    let evictor = tokio::spawn({
+        let state = state.clone();
+        let period =
+            (config.session_ttl / 4).clamp(Duration::from_millis(10), Duration::from_secs(1));
+        async move {
+            let mut tick = tokio::time::interval(period);
+            loop {
+                tick.tick().await;
+                state.sessions.evict_idle();
+            }
+        }
+    });
+
+    tokio::select! {
+        result = &mut server => {
+            evictor.abort();
+            return result?.context("server failed");
+        }
+        _ = shutdown.cancelled() => {}
+    }
+    set_health(ServingStatus::NotServing).await;
+    evictor.abort();
+    match tokio::time::timeout(config.drain_timeout, &mut server).await {
+        Ok(result) => {
+            result?.context("server failed")?;
+            tracing::info!("drained; bye");
+        }
+        Err(_) => {
+            server.abort();
+            tracing::warn!(
+                timeout = ?config.drain_timeout,
+                "drain timeout passed with connections still open; exiting anyway"
+            );
+        }
+    }
+    Ok(())
+}

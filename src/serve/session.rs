@@ -1,0 +1,489 @@
+//! Per-client sessions: the imagined plan, its rng and buffers, and the store that caps, looks up,
+//! closes and evicts them.
+
+use std::collections::{HashMap, VecDeque};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant, SystemTime};
+
+use rand::{RngCore, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use tokio::sync::watch;
+
+use crate::plan::{
+    DEFAULT_MAX_HORIZON, Growth, NonFinite, Plan, PlanView, ReplanConfig, ReplanOutcome,
+    ReplanScratch, replan,
+};
+use crate::policy::{Evaluator, Policy};
+use crate::proto;
+
+/// Resolved per-session options.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SessionSettings {
+    pub replan: ReplanConfig,
+    pub seed: u64,
+}
+
+impl SessionSettings {
+    /// Fills defaults into the client's options and checks them against the policy and limit.
+    pub fn resolve(
+        options: Option<&proto::SessionOptions>,
+        policy: &Policy,
+        max_horizon_limit: usize,
+    ) -> Result<SessionSettings, String> {
+        use proto::session_options::{Growth as G, Tolerance};
+        let default = proto::SessionOptions::default();
+        let options = options.unwrap_or(&default);
+        let epsilon = match options.tolerance {
+            None => 0.0,
+            Some(Tolerance::Epsilon(e)) => {
+                if !(e.is_finite() && e >= 0.0) {
+                    return Err(format!("epsilon is {e}; expected a finite value >= 0"));
+                }
+                e
+            }
+            Some(Tolerance::EpsilonCoef(c)) => {
+                if !(c.is_finite() && c >= 0.0) {
+                    return Err(format!("epsilon_coef is {c}; expected a finite value >= 0"));
+                }
+                let Some(scale) = policy.manifest.value_scale else {
+                    return Err(format!(
+                        "epsilon_coef needs the policy's value scale, and bundle '{}' has none; \
+                         give an absolute epsilon instead",
+                        policy.manifest.name
+                    ));
+                };
+                let range = scale.v_pi - scale.v_rand;
+                if range <= 0.0 {
+                    return Err(format!(
+                        "epsilon_coef needs V_pi > V_rand, but the bundle has V_pi = {} and \
+                         V_rand = {}; give an absolute epsilon instead",
+                        scale.v_pi, scale.v_rand
+                    ));
+                }
+                c * range
+            }
+        };
+        if epsilon > f32::MAX as f64 {
+            return Err(format!("epsilon {epsilon} is too large for f32"));
+        }
+        let check_count = |what: &str, n: u32| -> Result<usize, String> {
+            if n == 0 || n as usize > max_horizon_limit {
+                Err(format!(
+                    "{what} is {n}; expected 1..={max_horizon_limit} (the server's horizon limit)"
+                ))
+            } else {
+                Ok(n as usize)
+            }
+        };
+        let growth = match options.growth {
+            None => Growth::default(),
+            Some(G::Grow(k)) => Growth::Grow(check_count("grow", k)?),
+            Some(G::Fixed(n)) => Growth::Fixed(check_count("fixed", n)?),
+        };
+        let max_horizon = match (options.max_horizon, growth) {
+            (0, Growth::Fixed(n)) => n.max(DEFAULT_MAX_HORIZON.min(max_horizon_limit)),
+            (0, _) => DEFAULT_MAX_HORIZON.min(max_horizon_limit),
+            (h, _) => check_count("max_horizon", h)?,
+        };
+        if let Growth::Fixed(n) = growth
+            && n > max_horizon
+        {
+            return Err(format!(
+                "fixed {n} is longer than max_horizon {max_horizon}; raise max_horizon or lower n"
+            ));
+        }
+        Ok(SessionSettings {
+            replan: ReplanConfig {
+                epsilon: epsilon as f32,
+                growth,
+                max_horizon,
+                sampled: options.sampled,
+            },
+            seed: options.seed,
+        })
+    }
+
+    pub fn to_proto(self) -> proto::ResolvedOptions {
+        let (mode, n) = match self.replan.growth {
+            Growth::Grow(k) => ("grow", k),
+            Growth::Fixed(n) => ("fixed", n),
+        };
+        proto::ResolvedOptions {
+            epsilon: self.replan.epsilon as f64,
+            growth_mode: mode.to_string(),
+            growth: n as u32,
+            max_horizon: self.replan.max_horizon as u32,
+            sampled: self.replan.sampled,
+            seed: self.seed,
+        }
+    }
+}
+
+/// A step request the session cannot serve; the session is unchanged.
+#[derive(Debug, thiserror::Error)]
+pub enum StepError {
+    #[error("{0}")]
+    InvalidObservation(String),
+    #[error("observation could not be planned from: {0}; the session's plan is unchanged")]
+    NonFinite(#[from] NonFinite),
+}
+
+/// What one step did, for the response.
+#[derive(Clone, Copy, Debug)]
+pub struct StepReport {
+    pub outcome: ReplanOutcome,
+    pub step: u64,
+    pub episode: u64,
+    pub f_t: u64,
+}
+
+pub struct Session {
+    pub id: String,
+    pub policy: Arc<Policy>,
+    pub settings: SessionSettings,
+    evaluator: Evaluator,
+    rng: ChaCha8Rng,
+    scratch: ReplanScratch,
+    /// The committed plan: plan[0] is the action of step `step`.
+    plan: Plan,
+    spare: Plan,
+    /// Step index of plan[0] within the episode; None before the session's first step.
+    step: Option<u64>,
+    episode: u64,
+    steps_served: u64,
+    plan_updates: watch::Sender<Arc<proto::Plan>>,
+}
+
+impl Session {
+    pub fn new(id: String, policy: Arc<Policy>, settings: SessionSettings) -> Session {
+        let (obs, act) = (policy.obs_dim(), policy.act_dim());
+        let capacity = settings.replan.max_horizon + 1;
+        let (plan_updates, _) = watch::channel(Arc::new(proto::Plan {
+            session_id: id.clone(),
+            ..Default::default()
+        }));
+        Session {
+            evaluator: Evaluator::new(policy.clone()),
+            rng: ChaCha8Rng::seed_from_u64(settings.seed),
+            scratch: ReplanScratch::new(obs, act),
+            plan: Plan::with_capacity(obs, act, capacity),
+            spare: Plan::with_capacity(obs, act, capacity),
+            step: None,
+            episode: 0,
+            steps_served: 0,
+            id,
+            policy,
+            settings,
+            plan_updates,
+        }
+    }
+
+    pub fn steps_served(&self) -> u64 {
+        self.steps_served
+    }
+
+    /// Algorithm 1, lines 4-10 as a server: replan on the observed state (the old plan minus the
+    /// action executed at the last step), and commit the result. Replan and the networks do not
+    /// allocate here after the session's first step.
+    pub fn step(
+        &mut self,
+        observation: &[f32],
+        new_episode: bool,
+    ) -> Result<StepReport, StepError> {
+        let obs_dim = self.policy.obs_dim();
+        if observation.len() != obs_dim {
+            return Err(StepError::InvalidObservation(format!(
+                "observation has {} values; policy '{}' expects obs_dim = {obs_dim}",
+                observation.len(),
+                self.policy.manifest.name
+            )));
+        }
+        if let Some(i) = observation.iter().position(|v| !v.is_finite()) {
+            return Err(StepError::InvalidObservation(format!(
+                "observation[{i}] is {}; every value must be finite",
+                observation[i]
+            )));
+        }
+        let fresh = new_episode || self.step.is_none();
+        let (t, old) = match self.step {
+            Some(prev) if !fresh => (prev + 1, self.plan.tail(1)),
+            _ => (0, PlanView::empty()),
+        };
+        let outcome = replan(
+            &mut self.evaluator,
+            &self.settings.replan,
+            observation,
+            t,
+            old,
+            &mut self.spare,
+            &mut self.scratch,
+            &mut self.rng,
+        )?;
+        std::mem::swap(&mut self.plan, &mut self.spare);
+        if fresh && self.step.is_some() {
+            self.episode += 1;
+        }
+        self.step = Some(t);
+        self.steps_served += 1;
+        if self.plan_updates.receiver_count() > 0 {
+            self.plan_updates.send_replace(Arc::new(self.plan_proto()));
+        }
+        Ok(StepReport {
+            outcome,
+            step: t,
+            episode: self.episode,
+            f_t: t + 1 - self.plan.decided_at(0),
+        })
+    }
+
+    fn planned_actions(&self) -> Vec<proto::PlannedAction> {
+        (0..self.plan.len())
+            .map(|j| {
+                let mut action = vec![0.0; self.policy.act_dim()];
+                self.policy.unscale_action(self.plan.action(j), &mut action);
+                proto::PlannedAction {
+                    action,
+                    predicted_observation: self.plan.next_obs(j).to_vec(),
+                    decided_at: self.plan.decided_at(j),
+                }
+            })
+            .collect()
+    }
+
+    pub fn response(&self, report: &StepReport) -> proto::StepResponse {
+        let forecast = self.planned_actions();
+        proto::StepResponse {
+            action: forecast[0].action.clone(),
+            forecast,
+            kept: report.outcome.kept as u32,
+            broke_at: report.outcome.broke_at.map(|i| i as u32),
+            f_t: report.f_t,
+            step: report.step,
+            episode: report.episode,
+        }
+    }
+
+    /// The committed plan (empty before the first step).
+    pub fn plan_proto(&self) -> proto::Plan {
+        proto::Plan {
+            session_id: self.id.clone(),
+            episode: self.episode,
+            start_step: self.step.unwrap_or(0),
+            actions: self.planned_actions(),
+        }
+    }
+
+    /// A receiver of every later plan change.
+    pub fn watch(&self) -> watch::Receiver<Arc<proto::Plan>> {
+        self.plan_updates.subscribe()
+    }
+}
+
+/// A 128-bit random session id in hex, from the OS-seeded CSPRNG.
+pub fn new_session_id() -> String {
+    let mut bytes = [0u8; 16];
+    rand::rng().fill_bytes(&mut bytes);
+    hex::encode(bytes)
+}
+
+/// Why a session lookup failed.
+#[derive(Debug, thiserror::Error)]
+pub enum SessionError {
+    #[error("unknown session '{0}'; open one with OpenSession")]
+    NotFound(String),
+    #[error("session '{id}' was closed at {at}; open a new one with OpenSession")]
+    Closed { id: String, at: String },
+    #[error(
+        "session '{id}' expired at {at} after {idle_secs:.0} s idle (the server's session TTL is \
+         {ttl_secs:.0} s); open a new one with OpenSession"
+    )]
+    Expired {
+        id: String,
+        at: String,
+        idle_secs: f64,
+        ttl_secs: f64,
+    },
+    #[error("the server holds its maximum of {0} sessions; close one or retry later")]
+    CapReached(usize),
+}
+
+pub struct SessionSlot {
+    session: Mutex<Session>,
+    last_used_ms: AtomicU64,
+}
+
+impl SessionSlot {
+    /// Locks the session (a panic elsewhere cannot wedge it: poisoning is ignored).
+    pub fn lock(&self) -> MutexGuard<'_, Session> {
+        self.session.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+#[derive(Clone, Debug)]
+enum Ended {
+    Closed { at: SystemTime },
+    Expired { at: SystemTime, idle: Duration },
+}
+
+/// Ids of ended sessions, remembered (up to a bound) so that a late request learns why.
+struct Tombstones {
+    order: VecDeque<String>,
+    ended: HashMap<String, Ended>,
+}
+
+const MAX_TOMBSTONES: usize = 65_536;
+
+pub struct Sessions {
+    slots: Mutex<HashMap<String, Arc<SessionSlot>>>,
+    tombstones: Mutex<Tombstones>,
+    max_sessions: usize,
+    ttl: Duration,
+    epoch: Instant,
+}
+
+fn rfc3339(t: SystemTime) -> String {
+    humantime::format_rfc3339_millis(t).to_string()
+}
+
+/// Shortens a client-supplied id for error messages.
+fn shown(id: &str) -> String {
+    id.chars().take(64).collect()
+}
+
+impl Sessions {
+    pub fn new(max_sessions: usize, ttl: Duration) -> Sessions {
+        Sessions {
+            slots: Mutex::new(HashMap::new()),
+            tombstones: Mutex::new(Tombstones {
+                order: VecDeque::new(),
+                ended: HashMap::new(),
+            }),
+            max_sessions,
+            ttl,
+            epoch: Instant::now(),
+        }
+    }
+
+    fn now_ms(&self) -> u64 {
+        self.epoch.elapsed().as_millis() as u64
+    }
+
+    fn slots(&self) -> MutexGuard<'_, HashMap<String, Arc<SessionSlot>>> {
+        self.slots.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    pub fn len(&self) -> usize {
+        self.slots().len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    pub fn ttl(&self) -> Duration {
+        self.ttl
+    }
+
+    pub fn insert(&self, session: Session) -> Result<(), SessionError> {
+        let mut slots = self.slots();
+        if slots.len() >= self.max_sessions {
+            return Err(SessionError::CapReached(self.max_sessions));
+        }
+        let id = session.id.clone();
+        slots.insert(
+            id,
+            Arc::new(SessionSlot {
+                session: Mutex::new(session),
+                last_used_ms: AtomicU64::new(self.now_ms()),
+            }),
+        );
+        Ok(())
+    }
+
+    /// The live session with this id, marked as used now.
+    pub fn get(&self, id: &str) -> Result<Arc<SessionSlot>, SessionError> {
+        let slot = self.slots().get(id).cloned();
+        match slot {
+            Some(slot) => {
+                slot.last_used_ms.store(self.now_ms(), Ordering::Relaxed);
+                Ok(slot)
+            }
+            None => Err(self.why_missing(id)),
+        }
+    }
+
+    fn why_missing(&self, id: &str) -> SessionError {
+        let tombstones = self.tombstones.lock().unwrap_or_else(|p| p.into_inner());
+        match tombstones.ended.get(id) {
+            Some(Ended::Closed { at }) => SessionError::Closed {
+                id: shown(id),
+                at: rfc3339(*at),
+            },
+            Some(Ended::Expired { at, idle }) => SessionError::Expired {
+                id: shown(id),
+                at: rfc3339(*at),
+                idle_secs: idle.as_secs_f64(),
+                ttl_secs: self.ttl.as_secs_f64(),
+            },
+            None => SessionError::NotFound(shown(id)),
+        }
+    }
+
+    fn bury(&self, id: String, ended: Ended) {
+        let mut t = self.tombstones.lock().unwrap_or_else(|p| p.into_inner());
+        if t.order.len() >= MAX_TOMBSTONES
+            && let Some(old) = t.order.pop_front()
+        {
+            t.ended.remove(&old);
+        }
+        t.order.push_back(id.clone());
+        t.ended.insert(id, ended);
+    }
+
+    pub fn close(&self, id: &str) -> Result<Arc<SessionSlot>, SessionError> {
+        let removed = self.slots().remove(id);
+        match removed {
+            Some(slot) => {
+                self.bury(
+                    id.to_string(),
+                    Ended::Closed {
+                        at: SystemTime::now(),
+                    },
+                );
+                Ok(slot)
+            }
+            None => Err(self.why_missing(id)),
+        }
+    }
+
+    /// Removes every session idle for longer than the TTL; returns how many.
+    pub fn evict_idle(&self) -> usize {
+        let now = self.now_ms();
+        let ttl_ms = self.ttl.as_millis() as u64;
+        let expired: Vec<(String, u64)> = {
+            let mut slots = self.slots();
+            let ids: Vec<(String, u64)> = slots
+                .iter()
+                .filter_map(|(id, slot)| {
+                    let idle = now.saturating_sub(slot.last_used_ms.load(Ordering::Relaxed));
+                    (idle > ttl_ms).then(|| (id.clone(), idle))
+                })
+                .collect();
+            for (id, _) in &ids {
+                slots.remove(id);
+            }
+            ids
+        };
+        let at = SystemTime::now();
+        for (id, idle_ms) in &expired {
+            tracing::info!(session = %id, idle_ms, "session expired");
+            self.bury(
+                id.clone(),
+                Ended::Expired {
+                    at,
+                    idle: Duration::from_millis(*idle_ms),
+                },
+            );
+        }
+        expired.len()
+    }
+}
