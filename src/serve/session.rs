@@ -295,14 +295,14 @@ pub enum SessionError {
     #[error("session '{id}' was closed at {at}; open a new one with OpenSession")]
     Closed { id: String, at: String },
     #[error(
-        "session '{id}' expired at {at} after {idle_secs:.0} s idle (the server's session TTL is \
-         {ttl_secs:.0} s); open a new one with OpenSession"
+        "session '{id}' expired at {at} after {idle_secs:.1} s idle (the server's session TTL is \
+         {ttl}); open a new one with OpenSession"
     )]
     Expired {
         id: String,
         at: String,
         idle_secs: f64,
-        ttl_secs: f64,
+        ttl: String,
     },
     #[error("the server holds its maximum of {0} sessions; close one or retry later")]
     CapReached(usize),
@@ -422,7 +422,7 @@ impl Sessions {
                 id: shown(id),
                 at: rfc3339(*at),
                 idle_secs: idle.as_secs_f64(),
-                ttl_secs: self.ttl.as_secs_f64(),
+                ttl: humantime::format_duration(self.ttl).to_string(),
             },
             None => SessionError::NotFound(shown(id)),
         }

@@ -1,0 +1,145 @@
+//! Starts the real `prac serve` binary on an ephemeral port over bundles written by test code.
+#![allow(dead_code)]
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use prac::bundle;
+use prac::policy::{Policy, test_manifest};
+use prac::proto::prac_client::PracClient;
+use tonic::transport::Channel;
+use tonic_health::pb::HealthCheckRequest;
+use tonic_health::pb::health_check_response::ServingStatus;
+use tonic_health::pb::health_client::HealthClient;
+
+pub const OBS: usize = 3;
+pub const ACT: usize = 2;
+
+/// A small random policy: obs 3, act 2, actions in [-2, 2] x [0, 1].
+pub fn toy_policy(name: &str, seed: u64) -> Policy {
+    let mut manifest = test_manifest(name, "toy", OBS, ACT, &[32, 32], &[16, 16]);
+    manifest.action_low = vec![-2.0, 0.0];
+    manifest.action_high = vec![2.0, 1.0];
+    Policy::random(manifest, seed)
+}
+
+/// A temporary bundle directory holding `toy.safetensors` (and whatever else a test adds).
+pub fn bundle_dir() -> tempfile::TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    bundle::save(&toy_policy("toy", 1), &dir.path().join("toy.safetensors")).unwrap();
+    dir
+}
+
+pub struct Server {
+    pub child: Child,
+    pub addr: String,
+    pub stderr_path: PathBuf,
+    _stderr_dir: tempfile::TempDir,
+}
+
+impl Server {
+    /// Starts `prac serve --listen 127.0.0.1:0 --bundles DIR ARGS..` and waits for its address.
+    pub fn start(bundles: &Path, args: &[&str]) -> Server {
+        let stderr_dir = tempfile::tempdir().unwrap();
+        let stderr_path = stderr_dir.path().join("stderr.log");
+        let mut child = Command::new(env!("CARGO_BIN_EXE_prac"))
+            .args(["serve", "--listen", "127.0.0.1:0", "--bundles"])
+            .arg(bundles)
+            .args(args)
+            .stdout(Stdio::piped())
+            .stderr(std::fs::File::create(&stderr_path).unwrap())
+            .spawn()
+            .unwrap();
+        let stdout = child.stdout.take().unwrap();
+        let mut line = String::new();
+        BufReader::new(stdout).read_line(&mut line).unwrap();
+        let addr = line
+            .trim()
+            .strip_prefix("listening on ")
+            .unwrap_or_else(|| {
+                panic!(
+                    "no address from the server: {line:?}; stderr: {}",
+                    std::fs::read_to_string(&stderr_path).unwrap_or_default()
+                )
+            })
+            .to_string();
+        Server {
+            child,
+            addr,
+            stderr_path,
+            _stderr_dir: stderr_dir,
+        }
+    }
+
+    pub fn url(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+
+    pub async fn channel(&self) -> Channel {
+        Channel::from_shared(self.url())
+            .unwrap()
+            .connect()
+            .await
+            .unwrap()
+    }
+
+    pub async fn client(&self) -> PracClient<Channel> {
+        PracClient::connect(self.url()).await.unwrap()
+    }
+
+    pub async fn health(&self, service: &str) -> ServingStatus {
+        let mut health = HealthClient::new(self.channel().await);
+        let response = health
+            .check(HealthCheckRequest {
+                service: service.to_string(),
+            })
+            .await
+            .unwrap();
+        response.into_inner().status()
+    }
+
+    /// Waits until the server reports SERVING (bundles loaded).
+    pub async fn wait_serving(&self) {
+        let start = Instant::now();
+        while self.health("prac.v1.Prac").await != ServingStatus::Serving {
+            assert!(
+                start.elapsed() < Duration::from_secs(20),
+                "server never became SERVING"
+            );
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    }
+
+    pub fn stderr(&self) -> String {
+        std::fs::read_to_string(&self.stderr_path).unwrap_or_default()
+    }
+
+    pub fn signal(&self, name: &str) {
+        let status = Command::new("kill")
+            .args([&format!("-{name}"), &self.child.id().to_string()])
+            .status()
+            .unwrap();
+        assert!(status.success());
+    }
+
+    /// Waits for the process to exit; None if it is still running after `timeout`.
+    pub fn wait_exit(&mut self, timeout: Duration) -> Option<std::process::ExitStatus> {
+        let start = Instant::now();
+        while start.elapsed() < timeout {
+            if let Some(status) = self.child.try_wait().unwrap() {
+                return Some(status);
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        None
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}

@@ -1,0 +1,703 @@
+//! Integration tests: the real `prac serve` binary on an ephemeral port, driven by a tonic client.
+
+mod common;
+
+use std::time::Duration;
+
+use common::{ACT, OBS, Server, bundle_dir, toy_policy};
+use prac::proto::{self, session_options::Growth, session_options::Tolerance};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::Code;
+
+fn options(
+    tolerance: Option<Tolerance>,
+    growth: Option<Growth>,
+    max_horizon: u32,
+) -> proto::SessionOptions {
+    proto::SessionOptions {
+        tolerance,
+        growth,
+        max_horizon,
+        sampled: false,
+        seed: 0,
+    }
+}
+
+async fn open(
+    client: &mut prac::proto::prac_client::PracClient<tonic::transport::Channel>,
+    options: proto::SessionOptions,
+) -> String {
+    client
+        .open_session(proto::OpenSessionRequest {
+            policy: "toy".into(),
+            options: Some(options),
+        })
+        .await
+        .unwrap()
+        .into_inner()
+        .session_id
+}
+
+fn step_request(session: &str, observation: Vec<f32>, new_episode: bool) -> proto::StepRequest {
+    proto::StepRequest {
+        session_id: session.to_string(),
+        observation,
+        new_episode,
+    }
+}
+
+/// The environment of these tests: the model's own prediction plus noise, so plans sometimes hold
+/// and sometimes break.
+fn next_observation(response: &proto::StepResponse, rng: &mut ChaCha8Rng) -> Vec<f32> {
+    response.forecast[0]
+        .predicted_observation
+        .iter()
+        .map(|v| (v + rng.random_range(-0.05..0.05)).clamp(-3.0, 3.0))
+        .collect()
+}
+
+/// Checks one response against the previous one: the committed plan was honoured.
+fn check_response(
+    prev: Option<&proto::StepResponse>,
+    r: &proto::StepResponse,
+    max_horizon: usize,
+    low: &[f32],
+    high: &[f32],
+) {
+    assert!(!r.forecast.is_empty() && r.forecast.len() <= max_horizon);
+    assert_eq!(r.action, r.forecast[0].action);
+    assert_eq!(r.f_t, r.step + 1 - r.forecast[0].decided_at);
+    for planned in &r.forecast {
+        assert_eq!(planned.action.len(), ACT);
+        assert_eq!(planned.predicted_observation.len(), OBS);
+        assert!(planned.decided_at <= r.step);
+        for i in 0..ACT {
+            assert!(planned.action[i] >= low[i] && planned.action[i] <= high[i]);
+        }
+    }
+    let kept = r.kept as usize;
+    match prev {
+        Some(prev) if r.step == prev.step + 1 => {
+            // The kept actions are exactly the old plan after the executed action.
+            assert!(kept < prev.forecast.len());
+            for j in 0..kept {
+                assert_eq!(r.forecast[j].action, prev.forecast[j + 1].action);
+                assert_eq!(r.forecast[j].decided_at, prev.forecast[j + 1].decided_at);
+            }
+            if let Some(broke) = r.broke_at {
+                assert_eq!(broke as usize, kept);
+            } else {
+                assert!(kept == prev.forecast.len() - 1 || kept == max_horizon);
+            }
+            // What Replan appended was decided now.
+            for planned in &r.forecast[kept..] {
+                assert_eq!(planned.decided_at, r.step);
+            }
+        }
+        _ => {
+            assert_eq!((r.step, kept, r.broke_at), (0, 0, None));
+            assert!(r.forecast.iter().all(|p| p.decided_at == 0));
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn list_open_stream_unary_plan_and_watch() {
+    let dir = bundle_dir();
+    let server = Server::start(dir.path(), &[]);
+    server.wait_serving().await;
+    let mut client = server.client().await;
+
+    let policies = client
+        .list_policies(proto::ListPoliciesRequest {})
+        .await
+        .unwrap()
+        .into_inner()
+        .policies;
+    assert_eq!(policies.len(), 1);
+    let toy = &policies[0];
+    assert_eq!((toy.name.as_str(), toy.domain.as_str()), ("toy", "toy"));
+    assert_eq!((toy.obs_dim, toy.act_dim), (OBS as u32, ACT as u32));
+    assert_eq!(toy.action_low, vec![-2.0, 0.0]);
+    assert_eq!(toy.action_high, vec![2.0, 1.0]);
+    assert_eq!(toy.gamma, 0.98);
+    assert_eq!(toy.q_aggregation, "min");
+    let scale = toy.value_scale.unwrap();
+    assert_eq!((scale.v_pi, scale.v_rand), (10.0, -10.0));
+    let file = std::fs::read(dir.path().join("toy.safetensors")).unwrap();
+    assert_eq!(toy.content_hash, prac::bundle::content_hash(&file));
+
+    // eps = 0.0002 * (10 - (-10)) = 0.004.
+    let opened = client
+        .open_session(proto::OpenSessionRequest {
+            policy: "toy".into(),
+            options: Some(options(Some(Tolerance::EpsilonCoef(0.0002)), None, 12)),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let session = opened.session_id.clone();
+    assert_eq!(session.len(), 32);
+    let resolved = opened.options.unwrap();
+    assert!((resolved.epsilon - 0.004).abs() < 1e-6);
+    assert_eq!(
+        (
+            resolved.growth_mode.as_str(),
+            resolved.growth,
+            resolved.max_horizon
+        ),
+        ("grow", 2, 12)
+    );
+
+    // 1000 streamed steps, an episode every 250 steps, one response per request, in order.
+    let (tx, rx) = mpsc::channel(4);
+    let mut responses = client
+        .step_stream(ReceiverStream::new(rx))
+        .await
+        .unwrap()
+        .into_inner();
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let mut obs = vec![0.1f32, -0.2, 0.3];
+    let mut prev: Option<proto::StepResponse> = None;
+    let (mut breaks, mut holds, mut f_sum) = (0, 0, 0u64);
+    for i in 0..1000u64 {
+        let new_episode = i % 250 == 0;
+        if new_episode {
+            obs = (0..OBS).map(|_| rng.random_range(-1.0..1.0)).collect();
+        }
+        tx.send(step_request(&session, obs.clone(), new_episode))
+            .await
+            .unwrap();
+        let r = responses
+            .message()
+            .await
+            .unwrap()
+            .expect("one response per request");
+        assert_eq!(r.step, i % 250, "in order");
+        assert_eq!(r.episode, i / 250);
+        check_response(
+            prev.as_ref().filter(|_| !new_episode),
+            &r,
+            12,
+            &toy.action_low,
+            &toy.action_high,
+        );
+        if r.broke_at.is_some() {
+            breaks += 1;
+        } else if r.step > 0 {
+            holds += 1;
+        }
+        f_sum += r.f_t;
+        obs = next_observation(&r, &mut rng);
+        prev = Some(r);
+    }
+    drop(tx);
+    assert!(
+        responses.message().await.unwrap().is_none(),
+        "stream ends with the requests"
+    );
+    // The noise makes this eps both keep and break plans: both paths are exercised.
+    assert!(breaks > 0 && holds > 0, "breaks {breaks} holds {holds}");
+    assert!(f_sum > 1000, "mean forecast above 1");
+
+    // Unary steps continue the same episode.
+    let last = prev.unwrap();
+    let r = client
+        .step(step_request(&session, obs.clone(), false))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!((r.step, r.episode), (last.step + 1, last.episode));
+    check_response(Some(&last), &r, 12, &toy.action_low, &toy.action_high);
+
+    // GetPlan returns the committed plan of the last step.
+    let plan = client
+        .get_plan(proto::GetPlanRequest {
+            session_id: session.clone(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(plan.session_id, session);
+    assert_eq!((plan.start_step, plan.episode), (r.step, r.episode));
+    assert_eq!(plan.actions, r.forecast);
+
+    // WatchPlan: the current plan, then one update per step, equal to each step's forecast.
+    let mut watch = client
+        .watch_plan(proto::WatchPlanRequest {
+            session_id: session.clone(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(watch.message().await.unwrap().unwrap().actions, r.forecast);
+    let mut obs = next_observation(&r, &mut rng);
+    for _ in 0..5 {
+        let r = client
+            .step(step_request(&session, obs.clone(), false))
+            .await
+            .unwrap()
+            .into_inner();
+        let update = tokio::time::timeout(Duration::from_secs(5), watch.message())
+            .await
+            .unwrap()
+            .unwrap()
+            .unwrap();
+        assert_eq!(
+            (update.start_step, update.actions),
+            (r.step, r.forecast.clone())
+        );
+        obs = next_observation(&r, &mut rng);
+    }
+    // Closing the session ends the watch stream.
+    let closed = client
+        .close_session(proto::CloseSessionRequest {
+            session_id: session.clone(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(closed.steps, 1006);
+    let end = tokio::time::timeout(Duration::from_secs(5), watch.message())
+        .await
+        .unwrap();
+    assert!(matches!(end, Ok(None)), "{end:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sampled_sessions_are_reproducible_from_their_seed() {
+    let dir = bundle_dir();
+    let server = Server::start(dir.path(), &[]);
+    server.wait_serving().await;
+    let mut client = server.client().await;
+    let mut run = async |seed: u64| -> Vec<Vec<f32>> {
+        let mut o = options(Some(Tolerance::Epsilon(0.05)), Some(Growth::Fixed(6)), 0);
+        o.sampled = true;
+        o.seed = seed;
+        let session = open(&mut client, o).await;
+        let mut obs = vec![0.2f32, 0.1, -0.1];
+        let mut actions = Vec::new();
+        for _ in 0..50 {
+            let r = client
+                .step(step_request(&session, obs.clone(), false))
+                .await
+                .unwrap()
+                .into_inner();
+            assert_eq!(r.forecast.len(), 6, "fixed 6 refills to 6");
+            obs = r.forecast[0].predicted_observation.clone();
+            actions.push(r.action);
+        }
+        actions
+    };
+    let a = run(7).await;
+    assert_eq!(a, run(7).await);
+    assert_ne!(a, run(8).await);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_error_status_with_a_clear_message() {
+    let dir = tempfile::tempdir().unwrap();
+    prac::bundle::save(&toy_policy("toy", 1), &dir.path().join("toy.safetensors")).unwrap();
+    let mut unscaled = toy_policy("unscaled", 2);
+    unscaled.manifest.value_scale = None;
+    prac::bundle::save(&unscaled, &dir.path().join("unscaled.safetensors")).unwrap();
+    let server = Server::start(dir.path(), &["--max-message-bytes", "4096"]);
+    server.wait_serving().await;
+    let mut client = server.client().await;
+    let session = open(&mut client, options(None, None, 0)).await;
+    let good = client
+        .step(step_request(&session, vec![0.0, 0.1, 0.2], false))
+        .await
+        .unwrap()
+        .into_inner();
+    let plan_before = client
+        .get_plan(proto::GetPlanRequest {
+            session_id: session.clone(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+
+    let expect = |result: Result<tonic::Response<proto::StepResponse>, tonic::Status>,
+                  code: Code,
+                  words: &[&str]| {
+        let status = result.expect_err("must fail");
+        assert_eq!(status.code(), code, "{status:?}");
+        for w in words {
+            assert!(
+                status.message().contains(w),
+                "{:?} lacks {w:?}",
+                status.message()
+            );
+        }
+    };
+    // Wrong observation length, NaN, infinity.
+    expect(
+        client
+            .step(step_request(&session, vec![0.0; 4], false))
+            .await,
+        Code::InvalidArgument,
+        &["4 values", "obs_dim = 3"],
+    );
+    expect(
+        client
+            .step(step_request(&session, vec![0.0, f32::NAN, 0.0], false))
+            .await,
+        Code::InvalidArgument,
+        &["observation[1]", "NaN", "finite"],
+    );
+    expect(
+        client
+            .step(step_request(&session, vec![f32::INFINITY, 0.0, 0.0], false))
+            .await,
+        Code::InvalidArgument,
+        &["observation[0]", "inf"],
+    );
+    // Unknown session.
+    expect(
+        client.step(step_request("nope", vec![0.0; 3], false)).await,
+        Code::NotFound,
+        &["unknown session 'nope'", "OpenSession"],
+    );
+    // An oversized message is refused, and the server lives on.
+    let huge = client
+        .step(step_request(&session, vec![0.0; 5000], false))
+        .await;
+    let status = huge.expect_err("oversized message must fail");
+    assert!(
+        matches!(status.code(), Code::ResourceExhausted | Code::OutOfRange),
+        "{status:?}"
+    );
+
+    // Bad input lost nothing: the plan is unchanged and the next step continues the episode.
+    let plan_after = client
+        .get_plan(proto::GetPlanRequest {
+            session_id: session.clone(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(plan_before, plan_after);
+    let next = client
+        .step(step_request(&session, vec![0.0, 0.1, 0.2], false))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(next.step, good.step + 1);
+
+    // Unknown policy, bad options.
+    let open_status = |policy: &str, o: proto::SessionOptions| proto::OpenSessionRequest {
+        policy: policy.to_string(),
+        options: Some(o),
+    };
+    let cases: Vec<(proto::OpenSessionRequest, Code, &[&str])> = vec![
+        (
+            open_status("hopper", options(None, None, 0)),
+            Code::NotFound,
+            &["unknown policy 'hopper'", "toy, unscaled"],
+        ),
+        (
+            open_status("toy", options(Some(Tolerance::Epsilon(-1.0)), None, 0)),
+            Code::InvalidArgument,
+            &["epsilon is -1"],
+        ),
+        (
+            open_status("toy", options(Some(Tolerance::Epsilon(f64::NAN)), None, 0)),
+            Code::InvalidArgument,
+            &["epsilon is NaN"],
+        ),
+        (
+            open_status("toy", options(None, Some(Growth::Grow(0)), 0)),
+            Code::InvalidArgument,
+            &["grow is 0"],
+        ),
+        (
+            open_status("toy", options(None, Some(Growth::Fixed(40)), 8)),
+            Code::InvalidArgument,
+            &["fixed 40", "max_horizon 8"],
+        ),
+        (
+            open_status("toy", options(None, None, 5000)),
+            Code::InvalidArgument,
+            &["max_horizon is 5000", "1..=1024"],
+        ),
+        (
+            open_status(
+                "unscaled",
+                options(Some(Tolerance::EpsilonCoef(0.01)), None, 0),
+            ),
+            Code::InvalidArgument,
+            &["value scale", "absolute epsilon"],
+        ),
+    ];
+    for (request, code, words) in cases {
+        let status = client.open_session(request).await.expect_err("must fail");
+        assert_eq!(status.code(), code, "{status:?}");
+        for w in words {
+            assert!(
+                status.message().contains(w),
+                "{:?} lacks {w:?}",
+                status.message()
+            );
+        }
+    }
+
+    // A closed session: NOT_FOUND saying it was closed; on the stream too, which then ends.
+    client
+        .close_session(proto::CloseSessionRequest {
+            session_id: session.clone(),
+        })
+        .await
+        .unwrap();
+    expect(
+        client
+            .step(step_request(&session, vec![0.0; 3], false))
+            .await,
+        Code::NotFound,
+        &["was closed"],
+    );
+    let (tx, rx) = mpsc::channel(1);
+    tx.send(step_request(&session, vec![0.0; 3], false))
+        .await
+        .unwrap();
+    let mut stream = client
+        .step_stream(ReceiverStream::new(rx))
+        .await
+        .unwrap()
+        .into_inner();
+    let status = stream
+        .message()
+        .await
+        .expect_err("the stream ends with the error");
+    assert_eq!(status.code(), Code::NotFound);
+    for rpc in ["get_plan", "watch_plan", "close_session"] {
+        let code = match rpc {
+            "get_plan" => client
+                .get_plan(proto::GetPlanRequest {
+                    session_id: session.clone(),
+                })
+                .await
+                .err(),
+            "watch_plan" => client
+                .watch_plan(proto::WatchPlanRequest {
+                    session_id: session.clone(),
+                })
+                .await
+                .err(),
+            _ => client
+                .close_session(proto::CloseSessionRequest {
+                    session_id: session.clone(),
+                })
+                .await
+                .err(),
+        }
+        .map(|s| s.code());
+        assert_eq!(code, Some(Code::NotFound), "{rpc}");
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn idle_sessions_expire_with_failed_precondition() {
+    let dir = bundle_dir();
+    let server = Server::start(dir.path(), &["--session-ttl", "300ms"]);
+    server.wait_serving().await;
+    let mut client = server.client().await;
+    let idle = open(&mut client, options(None, None, 0)).await;
+    let busy = open(&mut client, options(None, None, 0)).await;
+    client
+        .step(step_request(&idle, vec![0.0; 3], false))
+        .await
+        .unwrap();
+    // The busy session keeps stepping and stays alive past the TTL.
+    for _ in 0..12 {
+        client
+            .step(step_request(&busy, vec![0.0; 3], false))
+            .await
+            .unwrap();
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let status = client
+        .step(step_request(&idle, vec![0.0; 3], false))
+        .await
+        .expect_err("idle session must have expired");
+    assert_eq!(status.code(), Code::FailedPrecondition, "{status:?}");
+    assert!(
+        status.message().contains("expired at"),
+        "{}",
+        status.message()
+    );
+    assert!(
+        status.message().contains("TTL is 300ms"),
+        "{}",
+        status.message()
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_session_cap_answers_resource_exhausted() {
+    let dir = bundle_dir();
+    let server = Server::start(dir.path(), &["--max-sessions", "3"]);
+    server.wait_serving().await;
+    let mut client = server.client().await;
+    let mut ids = Vec::new();
+    for _ in 0..3 {
+        ids.push(open(&mut client, options(None, None, 0)).await);
+    }
+    let status = client
+        .open_session(proto::OpenSessionRequest {
+            policy: "toy".into(),
+            options: None,
+        })
+        .await
+        .expect_err("over the cap");
+    assert_eq!(status.code(), Code::ResourceExhausted);
+    assert!(
+        status.message().contains("maximum of 3 sessions"),
+        "{}",
+        status.message()
+    );
+    client
+        .close_session(proto::CloseSessionRequest {
+            session_id: ids.pop().unwrap(),
+        })
+        .await
+        .unwrap();
+    open(&mut client, options(None, None, 0)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shutdown_ends_open_streams_and_exits_within_the_drain_timeout() {
+    let dir = bundle_dir();
+    let mut server = Server::start(dir.path(), &["--drain-timeout", "5s"]);
+    server.wait_serving().await;
+    let mut client = server.client().await;
+    let session = open(&mut client, options(None, None, 0)).await;
+    let (tx, rx) = mpsc::channel(4);
+    let mut responses = client
+        .step_stream(ReceiverStream::new(rx))
+        .await
+        .unwrap()
+        .into_inner();
+    for _ in 0..3 {
+        tx.send(step_request(&session, vec![0.0; 3], false))
+            .await
+            .unwrap();
+        responses.message().await.unwrap().unwrap();
+    }
+    let mut watch = client
+        .watch_plan(proto::WatchPlanRequest {
+            session_id: session.clone(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    watch.message().await.unwrap().unwrap();
+
+    let started = std::time::Instant::now();
+    server.signal("TERM");
+    // Both open streams end with UNAVAILABLE, although the client keeps them open.
+    let status = tokio::time::timeout(Duration::from_secs(5), responses.message())
+        .await
+        .expect("the stream must end")
+        .expect_err("with a status");
+    assert_eq!(status.code(), Code::Unavailable, "{status:?}");
+    assert!(status.message().contains("shutting down"));
+    let status = tokio::time::timeout(Duration::from_secs(5), watch.message())
+        .await
+        .unwrap()
+        .expect_err("with a status");
+    assert_eq!(status.code(), Code::Unavailable);
+    let exit = server
+        .wait_exit(Duration::from_secs(8))
+        .expect("exits within the drain timeout");
+    assert!(exit.success(), "{exit:?}: {}", server.stderr());
+    assert!(started.elapsed() < Duration::from_secs(6));
+    drop(tx);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn health_and_reflection() {
+    use tonic_health::pb::health_check_response::ServingStatus;
+    use tonic_reflection::pb::v1::{
+        ServerReflectionRequest, server_reflection_client::ServerReflectionClient,
+        server_reflection_request::MessageRequest, server_reflection_response::MessageResponse,
+    };
+    // No bundles: the server runs but does not claim to serve.
+    let empty = tempfile::tempdir().unwrap();
+    let server = Server::start(empty.path(), &[]);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert_eq!(
+        server.health("prac.v1.Prac").await,
+        ServingStatus::NotServing
+    );
+    assert_eq!(server.health("").await, ServingStatus::NotServing);
+    drop(server);
+
+    let dir = bundle_dir();
+    let server = Server::start(dir.path(), &[]);
+    server.wait_serving().await;
+    assert_eq!(server.health("").await, ServingStatus::Serving);
+    let mut reflection = ServerReflectionClient::new(server.channel().await);
+    let (tx, rx) = mpsc::channel(1);
+    tx.send(ServerReflectionRequest {
+        host: String::new(),
+        message_request: Some(MessageRequest::ListServices(String::new())),
+    })
+    .await
+    .unwrap();
+    let mut responses = reflection
+        .server_reflection_info(ReceiverStream::new(rx))
+        .await
+        .unwrap()
+        .into_inner();
+    let response = responses.message().await.unwrap().unwrap();
+    let Some(MessageResponse::ListServicesResponse(list)) = response.message_response else {
+        panic!("unexpected reflection answer");
+    };
+    let names: Vec<String> = list.service.into_iter().map(|s| s.name).collect();
+    assert!(names.contains(&"prac.v1.Prac".to_string()), "{names:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_bundles_are_skipped_with_their_reason_or_fatal_with_strict() {
+    let dir = bundle_dir();
+    let bytes = prac::bundle::to_bytes(&toy_policy("broken", 3)).unwrap();
+    std::fs::write(
+        dir.path().join("broken.safetensors"),
+        &bytes[..bytes.len() / 2],
+    )
+    .unwrap();
+    let server = Server::start(dir.path(), &[]);
+    server.wait_serving().await;
+    let mut client = server.client().await;
+    let names: Vec<String> = client
+        .list_policies(proto::ListPoliciesRequest {})
+        .await
+        .unwrap()
+        .into_inner()
+        .policies
+        .into_iter()
+        .map(|p| p.name)
+        .collect();
+    assert_eq!(names, vec!["toy"]);
+    let log = server.stderr();
+    assert!(
+        log.contains("broken.safetensors") && log.contains("skipping bad bundle"),
+        "{log}"
+    );
+    drop(server);
+
+    let mut strict = Server::start(dir.path(), &["--strict"]);
+    let exit = strict
+        .wait_exit(Duration::from_secs(10))
+        .expect("--strict exits");
+    assert!(!exit.success());
+    let log = strict.stderr();
+    assert!(
+        log.contains("broken.safetensors") && log.contains("--strict"),
+        "{log}"
+    );
+}
