@@ -182,10 +182,10 @@ impl Manifest {
                 );
             }
         }
-        if let Some(scale) = self.value_scale {
-            if !scale.v_pi.is_finite() || !scale.v_rand.is_finite() {
-                return fail("value_scale", "holds a non-finite value".into());
-            }
+        if let Some(scale) = self.value_scale
+            && (!scale.v_pi.is_finite() || !scale.v_rand.is_finite())
+        {
+            return fail("value_scale", "holds a non-finite value".into());
         }
         Ok(())
     }

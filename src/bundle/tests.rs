@@ -38,9 +38,7 @@ fn rebuild(tensors: &[NamedTensor], manifest_json: Option<&str>) -> Vec<u8> {
 }
 
 fn load_error(bytes: &[u8]) -> BundleError {
-    from_bytes(bytes, &path())
-        .err()
-        .expect("bundle must be rejected")
+    from_bytes(bytes, &path()).expect_err("bundle must be rejected")
 }
 
 #[test]
@@ -154,7 +152,8 @@ fn manifest_problems_are_named() {
     let e = load_error(&rebuild(&tensors, Some("{not json")));
     assert!(e.reason.contains("invalid manifest JSON"), "{e}");
 
-    let cases: Vec<(fn(&mut Manifest), &str)> = vec![
+    type Corruption = (fn(&mut Manifest), &'static str);
+    let cases: Vec<Corruption> = vec![
         (|m| m.format_version = 9, "manifest.format_version"),
         (|m| m.obs_dim = 0, "manifest.obs_dim"),
         (|m| m.action_high = vec![1.0], "manifest.action_high"),

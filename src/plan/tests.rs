@@ -275,7 +275,7 @@ fn forecast_f_t_over_an_episode() {
     // until the cap bounds it.
     let mut ep = Episode::new(ClosedForm::exact(), huge_eps(Growth::Grow(2), 1000), 3);
     for t in 0..50u64 {
-        assert_eq!(ep.step().f_t, (t + 1) / 2 + 1, "step {t}");
+        assert_eq!(ep.step().f_t, t.div_ceil(2) + 1, "step {t}");
     }
     // Capped at H: the plan is H long and every action waits H - 1 steps, so f_t reaches H.
     let h = 4;
