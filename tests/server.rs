@@ -263,8 +263,10 @@ async fn list_open_stream_unary_plan_and_watch() {
     assert_eq!(closed.steps, 1006);
     let end = tokio::time::timeout(Duration::from_secs(5), watch.message())
         .await
-        .unwrap();
-    assert!(matches!(end, Ok(None)), "{end:?}");
+        .unwrap()
+        .expect_err("the watch ends with the session's status");
+    assert_eq!(end.code(), Code::NotFound);
+    assert!(end.message().contains("was closed"), "{end:?}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -362,6 +364,14 @@ async fn every_error_status_with_a_clear_message() {
         Code::NotFound,
         &["unknown session 'nope'", "OpenSession"],
     );
+    // Finite but huge: the networks overflow, the step is refused, the plan is kept.
+    expect(
+        client
+            .step(step_request(&session, vec![3e38, -3e38, 3e38], false))
+            .await,
+        Code::InvalidArgument,
+        &["non-finite", "plan is unchanged"],
+    );
     // An oversized message is refused, and the server lives on.
     let huge = client
         .step(step_request(&session, vec![0.0; 5000], false))
@@ -420,7 +430,7 @@ async fn every_error_status_with_a_clear_message() {
         (
             open_status("toy", options(None, None, 5000)),
             Code::InvalidArgument,
-            &["max_horizon is 5000", "1..=1024"],
+            &["max_horizon is 5000", "1..=256"],
         ),
         (
             open_status(

@@ -44,7 +44,7 @@ pub struct ServeArgs {
     /// Refuse to start if any bundle fails to load (default: skip it with an error).
     #[arg(long)]
     pub strict: bool,
-    /// Largest max_horizon, grow k or fixed n a session may ask for [default: 1024].
+    /// Largest max_horizon, grow k or fixed n a session may ask for [default: 256].
     #[arg(long)]
     pub max_horizon_limit: Option<usize>,
 }
@@ -93,7 +93,7 @@ impl Default for ServeConfig {
             drain_timeout: Duration::from_secs(10),
             log_format: LogFormat::Text,
             strict: false,
-            max_horizon_limit: 1024,
+            max_horizon_limit: 256,
         }
     }
 }

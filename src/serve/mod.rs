@@ -5,6 +5,7 @@ pub mod registry;
 pub mod service;
 pub mod session;
 
+use std::io::IsTerminal;
 use std::sync::{Arc, RwLock};
 use std::time::Duration;
 
@@ -28,6 +29,7 @@ pub fn init_logging(format: LogFormat) {
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
     let builder = tracing_subscriber::fmt()
         .with_env_filter(filter)
+        .with_ansi(std::io::stderr().is_terminal())
         .with_writer(std::io::stderr);
     let _ = match format {
         LogFormat::Text => builder.try_init(),
@@ -92,6 +94,7 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
         registry: RwLock::new(None),
         sessions: Sessions::new(config.max_sessions, config.session_ttl),
         max_horizon_limit: config.max_horizon_limit,
+        max_message_bytes: config.max_message_bytes,
         shutdown: shutdown.clone(),
     });
     let prac = PracServer::new(PracService {
@@ -125,7 +128,15 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
     });
 
     let dir = config.bundles.clone();
-    let loaded = tokio::task::spawn_blocking(move || Registry::load_dir(&dir)).await?;
+    let load = tokio::task::spawn_blocking(move || Registry::load_dir(&dir));
+    let loaded = tokio::select! {
+        loaded = load => loaded?,
+        _ = shutdown.cancelled() => {
+            // Stopped before the bundles loaded: no session exists, only the listener to close.
+            let _ = tokio::time::timeout(config.drain_timeout, &mut server).await;
+            return Ok(());
+        }
+    };
     let loaded = match loaded {
         Ok(loaded) => loaded,
         Err(e) => {

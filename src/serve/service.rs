@@ -20,6 +20,8 @@ pub struct ServerState {
     pub registry: RwLock<Option<Arc<Registry>>>,
     pub sessions: Sessions,
     pub max_horizon_limit: usize,
+    /// Largest message; sessions whose plans could not fit a response are refused.
+    pub max_message_bytes: usize,
     /// Cancelled at shutdown: open streams end with UNAVAILABLE.
     pub shutdown: CancellationToken,
 }
@@ -39,6 +41,27 @@ impl From<StepError> for Status {
     fn from(e: StepError) -> Status {
         Status::invalid_argument(e.to_string())
     }
+}
+
+/// Sends on a response stream unless shutdown comes first (a client that stops reading must not
+/// hold the drain). False when the stream is over.
+async fn send<T>(
+    tx: &mpsc::Sender<Result<T, Status>>,
+    item: Result<T, Status>,
+    shutdown: &CancellationToken,
+) -> bool {
+    tokio::select! {
+        biased;
+        sent = tx.send(item) => sent.is_ok(),
+        _ = shutdown.cancelled() => false,
+    }
+}
+
+/// An upper bound on the encoded size of a response carrying a plan of `horizon` entries.
+fn largest_response_bytes(horizon: usize, obs_dim: usize, act_dim: usize) -> usize {
+    // Packed f32s plus per-field tags, lengths and varints, generously.
+    let entry = 4 * (obs_dim + act_dim) + 32;
+    (horizon + 1) * entry + 128
 }
 
 fn shutting_down() -> Status {
@@ -122,6 +145,18 @@ impl Prac for PracService {
             self.state.max_horizon_limit,
         )
         .map_err(|e| Status::invalid_argument(format!("bad session options: {e}")))?;
+        let largest = largest_response_bytes(
+            settings.replan.max_horizon,
+            policy.obs_dim(),
+            policy.act_dim(),
+        );
+        if largest > self.state.max_message_bytes {
+            return Err(Status::invalid_argument(format!(
+                "bad session options: a plan of max_horizon {} may need {largest} bytes per \
+                 response, over the server's max message size of {} bytes; lower max_horizon",
+                settings.replan.max_horizon, self.state.max_message_bytes
+            )));
+        }
         let id = new_session_id();
         self.state
             .sessions
@@ -164,7 +199,7 @@ impl Prac for PracService {
                 tokio::select! {
                     biased;
                     _ = state.shutdown.cancelled() => {
-                        let _ = tx.send(Err(shutting_down())).await;
+                        let _ = tx.try_send(Err(shutting_down()));
                         break;
                     }
                     message = inbound.message() => {
@@ -172,14 +207,14 @@ impl Prac for PracService {
                             Ok(Some(request)) => request,
                             Ok(None) => break,
                             Err(status) => {
-                                let _ = tx.send(Err(status)).await;
+                                send(&tx, Err(status), &state.shutdown).await;
                                 break;
                             }
                         };
                         let response = state.step(&request);
                         let failed = response.is_err();
                         // The first error ends the stream (gRPC carries a status only at the end).
-                        if tx.send(response).await.is_err() || failed {
+                        if !send(&tx, response, &state.shutdown).await || failed {
                             break;
                         }
                     }
@@ -204,32 +239,41 @@ impl Prac for PracService {
         &self,
         request: Request<proto::WatchPlanRequest>,
     ) -> Result<Response<Self::WatchPlanStream>, Status> {
-        let slot = self.state.sessions.get(&request.get_ref().session_id)?;
+        let id = request.into_inner().session_id;
+        let slot = self.state.sessions.get(&id)?;
         let (current, mut updates) = {
             let session = slot.lock();
             (session.plan_proto(), session.watch())
         };
         drop(slot);
-        let (tx, rx) = mpsc::channel(STREAM_BUFFER);
-        let shutdown = self.state.shutdown.clone();
+        // One slot: while a watcher is slow, the watch channel keeps only the newest plan.
+        let (tx, rx) = mpsc::channel(1);
+        let state = self.state.clone();
         tokio::spawn(async move {
-            if tx.send(Ok(current)).await.is_err() {
+            let shutdown = &state.shutdown;
+            if !send(&tx, Ok(current), shutdown).await {
+                let _ = tx.try_send(Err(shutting_down()));
                 return;
             }
             loop {
                 tokio::select! {
                     biased;
                     _ = shutdown.cancelled() => {
-                        let _ = tx.send(Err(shutting_down())).await;
+                        let _ = tx.try_send(Err(shutting_down()));
                         break;
                     }
                     changed = updates.changed() => {
-                        // The session ended (closed or evicted): end the stream.
                         if changed.is_err() {
+                            // The session ended: say how (closed, expired).
+                            let why = state.sessions.get(&id).err().map(Status::from);
+                            if let Some(status) = why {
+                                send(&tx, Err(status), shutdown).await;
+                            }
                             break;
                         }
                         let plan = updates.borrow_and_update().as_ref().clone();
-                        if tx.send(Ok(plan)).await.is_err() {
+                        if !send(&tx, Ok(plan), shutdown).await {
+                            let _ = tx.try_send(Err(shutting_down()));
                             break;
                         }
                     }

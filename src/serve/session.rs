@@ -210,6 +210,8 @@ impl Session {
             Some(prev) if !fresh => (prev + 1, self.plan.tail(1)),
             _ => (0, PlanView::empty()),
         };
+        // A failed replan must not advance the session's rng either.
+        let mut rng = self.rng.clone();
         let outcome = replan(
             &mut self.evaluator,
             &self.settings.replan,
@@ -218,8 +220,9 @@ impl Session {
             old,
             &mut self.spare,
             &mut self.scratch,
-            &mut self.rng,
+            &mut rng,
         )?;
+        self.rng = rng;
         std::mem::swap(&mut self.plan, &mut self.spare);
         if fresh && self.step.is_some() {
             self.episode += 1;
