@@ -440,6 +440,11 @@ async fn every_error_status_with_a_clear_message() {
             Code::InvalidArgument,
             &["value scale", "absolute epsilon"],
         ),
+        (
+            open_status("toy", options(None, None, 200)),
+            Code::InvalidArgument,
+            &["max_horizon 200", "max message size of 4096"],
+        ),
     ];
     for (request, code, words) in cases {
         let status = client.open_session(request).await.expect_err("must fail");
@@ -604,8 +609,30 @@ async fn shutdown_ends_open_streams_and_exits_within_the_drain_timeout() {
         .into_inner();
     watch.message().await.unwrap().unwrap();
 
+    let mut health = tonic_health::pb::health_client::HealthClient::new(server.channel().await);
+    let mut health_watch = health
+        .watch(tonic_health::pb::HealthCheckRequest {
+            service: "prac.v1.Prac".into(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let serving = tonic_health::pb::health_check_response::ServingStatus::Serving as i32;
+    assert_eq!(
+        health_watch.message().await.unwrap().unwrap().status,
+        serving
+    );
+
     let started = std::time::Instant::now();
     server.signal("TERM");
+    // Health turns NOT_SERVING, then its watch ends too.
+    let not_serving = tonic_health::pb::health_check_response::ServingStatus::NotServing as i32;
+    let update = tokio::time::timeout(Duration::from_secs(5), health_watch.message())
+        .await
+        .unwrap()
+        .unwrap()
+        .unwrap();
+    assert_eq!(update.status, not_serving);
     // Both open streams end with UNAVAILABLE, although the client keeps them open.
     let status = tokio::time::timeout(Duration::from_secs(5), responses.message())
         .await
@@ -622,7 +649,12 @@ async fn shutdown_ends_open_streams_and_exits_within_the_drain_timeout() {
         .wait_exit(Duration::from_secs(8))
         .expect("exits within the drain timeout");
     assert!(exit.success(), "{exit:?}: {}", server.stderr());
-    assert!(started.elapsed() < Duration::from_secs(6));
+    // Well within the 5 s drain timeout: no open stream held the server.
+    assert!(
+        started.elapsed() < Duration::from_secs(3),
+        "{:?}",
+        started.elapsed()
+    );
     drop(tx);
 }
 

@@ -1,6 +1,7 @@
 //! `prac serve`: the gRPC daemon.
 
 pub mod config;
+pub mod health;
 pub mod registry;
 pub mod service;
 pub mod session;
@@ -69,8 +70,12 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
         .with_context(|| format!("cannot listen on {}", config.listen))?;
     let addr = listener.local_addr()?;
 
-    let (health, health_service) = tonic_health::server::health_reporter();
-    let set_health = |status: ServingStatus| {
+    let shutdown = CancellationToken::new();
+    let health = tonic_health::server::HealthReporter::new();
+    let health_service = tonic_health::pb::health_server::HealthServer::new(
+        health::ShutdownAwareHealth::new(health.clone(), shutdown.clone()),
+    );
+    let set_health = move |status: ServingStatus| {
         let health = health.clone();
         async move {
             health.set_service_status("", status).await;
@@ -89,7 +94,6 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
         .build_v1()
         .context("building the reflection service")?;
 
-    let shutdown = CancellationToken::new();
     let state = Arc::new(ServerState {
         registry: RwLock::new(None),
         sessions: Sessions::new(config.max_sessions, config.session_ttl),
@@ -120,9 +124,12 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
 
     tokio::spawn({
         let shutdown = shutdown.clone();
+        let set_health = set_health.clone();
         async move {
             termination_signal().await;
             tracing::info!("shutdown requested: draining");
+            // Health first, so watchers and load balancers see NOT_SERVING before streams end.
+            set_health(ServingStatus::NotServing).await;
             shutdown.cancel();
         }
     });
@@ -168,6 +175,10 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
         tracing::warn!(dir = %config.bundles.display(), "no bundles loaded; health stays NOT_SERVING");
     } else if !shutdown.is_cancelled() {
         set_health(ServingStatus::Serving).await;
+        // A signal that came in meanwhile has set NOT_SERVING already: restore it.
+        if shutdown.is_cancelled() {
+            set_health(ServingStatus::NotServing).await;
+        }
         tracing::info!(policies = count, "serving");
     }
 
@@ -191,7 +202,6 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
         }
         _ = shutdown.cancelled() => {}
     }
-    set_health(ServingStatus::NotServing).await;
     evictor.abort();
     match tokio::time::timeout(config.drain_timeout, &mut server).await {
         Ok(result) => {
