@@ -710,7 +710,7 @@ async fn bad_bundles_are_skipped_with_their_reason_or_fatal_with_strict() {
         &bytes[..bytes.len() / 2],
     )
     .unwrap();
-    let server = Server::start(dir.path(), &[]);
+    let server = Server::start(dir.path(), &["--log-format", "json"]);
     server.wait_serving().await;
     let mut client = server.client().await;
     let names: Vec<String> = client
@@ -723,11 +723,19 @@ async fn bad_bundles_are_skipped_with_their_reason_or_fatal_with_strict() {
         .map(|p| p.name)
         .collect();
     assert_eq!(names, vec!["toy"]);
+    // JSON logs: one object per line; the bad bundle's line names the file and the reason.
     let log = server.stderr();
-    assert!(
-        log.contains("broken.safetensors") && log.contains("skipping bad bundle"),
-        "{log}"
-    );
+    let lines: Vec<serde_json::Value> = log
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{e}: {l}")))
+        .collect();
+    let skipped = lines
+        .iter()
+        .find(|l| l["fields"]["message"] == "skipping bad bundle")
+        .unwrap_or_else(|| panic!("{log}"));
+    assert_eq!(skipped["level"], "ERROR");
+    let error = skipped["fields"]["error"].as_str().unwrap();
+    assert!(error.contains("broken.safetensors: safetensors"), "{error}");
     drop(server);
 
     let mut strict = Server::start(dir.path(), &["--strict"]);
@@ -740,4 +748,32 @@ async fn bad_bundles_are_skipped_with_their_reason_or_fatal_with_strict() {
         log.contains("broken.safetensors") && log.contains("--strict"),
         "{log}"
     );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigint_drains_like_sigterm() {
+    let dir = bundle_dir();
+    let mut server = Server::start(dir.path(), &["--drain-timeout", "5s"]);
+    server.wait_serving().await;
+    let mut client = server.client().await;
+    let session = open(&mut client, options(None, None, 0)).await;
+    let (tx, rx) = mpsc::channel(4);
+    let mut responses = client
+        .step_stream(ReceiverStream::new(rx))
+        .await
+        .unwrap()
+        .into_inner();
+    tx.send(step_request(&session, vec![0.0; 3], false))
+        .await
+        .unwrap();
+    responses.message().await.unwrap().unwrap();
+    server.signal("INT");
+    let status = tokio::time::timeout(Duration::from_secs(5), responses.message())
+        .await
+        .unwrap()
+        .expect_err("the stream ends with a status");
+    assert_eq!(status.code(), Code::Unavailable);
+    let exit = server.wait_exit(Duration::from_secs(8)).expect("exits");
+    assert!(exit.success(), "{}", server.stderr());
+    drop(tx);
 }
