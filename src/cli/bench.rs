@@ -32,6 +32,10 @@ impl<N: Networks> Networks for Counting<N> {
         self.qs += 1;
         self.inner.q(obs, action)
     }
+    fn q_pair(&mut self, obs: &[f32], a: &[f32], b: &[f32]) -> (f32, f32) {
+        self.qs += 2;
+        self.inner.q_pair(obs, a, b)
+    }
     fn predict_next(&mut self, obs: &[f32], action: &[f32], next_obs: &mut [f32]) {
         self.predicts += 1;
         self.inner.predict_next(obs, action, next_obs)

@@ -100,6 +100,16 @@ pub struct ShapeError {
     pub got: usize,
 }
 
+impl MlpScratch {
+    /// The output of the last forward into this scratch.
+    pub fn output(&self) -> &[f32] {
+        match self.outputs.last() {
+            Some(out) => out.as_slice(),
+            None => self.input.as_slice(),
+        }
+    }
+}
+
 impl Mlp {
     pub fn new(
         input_dim: usize,
@@ -185,9 +195,39 @@ impl Mlp {
                 self.activation.apply(out.as_mut_slice());
             }
         }
-        match scratch.outputs.last() {
-            Some(out) => out.as_slice(),
-            None => scratch.input.as_slice(),
+        scratch.output()
+    }
+
+    /// Forward of two states at once (e.g. Q(s, a) and Q(s, pi(s))), each written into the input
+    /// buffer of its scratch: every weight is read once for both, which roughly halves the memory
+    /// traffic of two single forwards. Results: [`MlpScratch::output`]. Does not allocate.
+    pub fn forward_pair_scratch_inputs(&self, a: &mut MlpScratch, b: &mut MlpScratch) {
+        let last = self.layers.len();
+        for (i, dense) in self.layers.iter().enumerate() {
+            let (a_before, a_rest) = a.outputs.split_at_mut(i);
+            let (b_before, b_rest) = b.outputs.split_at_mut(i);
+            let (ya, yb) = (&mut a_rest[0], &mut b_rest[0]);
+            let (xa, xb) = if i == 0 {
+                (a.input.as_slice(), b.input.as_slice())
+            } else {
+                (a_before[i - 1].as_slice(), b_before[i - 1].as_slice())
+            };
+            ya.copy_from(&dense.bias);
+            yb.copy_from(&dense.bias);
+            let (ya, yb) = (ya.as_mut_slice(), yb.as_mut_slice());
+            let rows = dense.output_dim();
+            // Column-major weights: add column j times x[j], both states per load of the column.
+            for (j, column) in dense.weight.as_slice().chunks_exact(rows).enumerate() {
+                let (sa, sb) = (xa[j], xb[j]);
+                for ((ya, yb), w) in ya.iter_mut().zip(yb.iter_mut()).zip(column) {
+                    *ya += w * sa;
+                    *yb += w * sb;
+                }
+            }
+            if i + 1 < last || self.activate_output {
+                self.activation.apply(ya);
+                self.activation.apply(yb);
+            }
         }
     }
 
@@ -295,6 +335,30 @@ mod tests {
                 assert!((out[(j, k)] - expected[j]).abs() < 1e-4);
             }
         }
+    }
+
+    #[test]
+    fn pair_forward_matches_two_single_forwards() {
+        let mlp = Mlp::new(
+            5,
+            vec![layer(9, 5, 1.0), layer(7, 9, 2.0), layer(1, 7, 3.0)],
+            Activation::Relu,
+            false,
+        )
+        .unwrap();
+        let (xa, xb) = ([0.3, -0.2, 0.9, 0.1, -0.5], [-0.7, 0.4, 0.2, 0.6, 0.05]);
+        let (mut sa, mut sb, mut single) = (mlp.scratch(), mlp.scratch(), mlp.scratch());
+        mlp.input_buffer(&mut sa).copy_from_slice(&xa);
+        mlp.input_buffer(&mut sb).copy_from_slice(&xb);
+        mlp.forward_pair_scratch_inputs(&mut sa, &mut sb);
+        let ya = mlp.forward(&xa, &mut single)[0];
+        assert!((sa.output()[0] - ya).abs() < 1e-5);
+        let yb = mlp.forward(&xb, &mut single)[0];
+        assert!((sb.output()[0] - yb).abs() < 1e-5);
+        // Identical inputs give bitwise identical outputs (Replan's eps = 0 test relies on it).
+        mlp.input_buffer(&mut sb).copy_from_slice(&xa);
+        mlp.forward_pair_scratch_inputs(&mut sa, &mut sb);
+        assert_eq!(sa.output(), sb.output());
     }
 
     #[test]

@@ -17,6 +17,11 @@ pub trait Networks {
     fn act(&mut self, obs: &[f32], noise: Option<&[f32]>, action: &mut [f32]);
     /// The aggregated critic value Q(obs, action).
     fn q(&mut self, obs: &[f32], action: &[f32]) -> f32;
+    /// Q(obs, a) and Q(obs, b) together (Replan's test compares two actions at one state);
+    /// implementations may share the weight reads.
+    fn q_pair(&mut self, obs: &[f32], a: &[f32], b: &[f32]) -> (f32, f32) {
+        (self.q(obs, a), self.q(obs, b))
+    }
     /// The dynamics model's prediction of the next observation.
     fn predict_next(&mut self, obs: &[f32], action: &[f32], next_obs: &mut [f32]);
 }
@@ -269,8 +274,7 @@ pub fn replan<N: Networks, R: Rng>(
                 index: j,
             });
         }
-        let q_policy = nets.q(s, pi);
-        let q_planned = nets.q(s, action);
+        let (q_policy, q_planned) = nets.q_pair(s, pi, action);
         if !q_policy.is_finite() || !q_planned.is_finite() {
             return Err(NonFinite {
                 what: "critic",

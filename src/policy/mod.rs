@@ -185,6 +185,8 @@ pub struct Evaluator {
     mu: DVector<f32>,
     log_std: DVector<f32>,
     critics: Vec<MlpScratch>,
+    /// Second state of each critic's pair forward.
+    critics_pair: Vec<MlpScratch>,
     model: MlpScratch,
 }
 
@@ -195,6 +197,7 @@ impl Evaluator {
             mu: DVector::zeros(policy.act_dim()),
             log_std: DVector::zeros(policy.act_dim()),
             critics: policy.critics.iter().map(Mlp::scratch).collect(),
+            critics_pair: policy.critics.iter().map(Mlp::scratch).collect(),
             model: policy.model.net.scratch(),
             policy,
         }
@@ -253,6 +256,29 @@ impl Networks for Evaluator {
         match how {
             QAggregation::Min => q,
             QAggregation::Mean => q / self.policy.critics.len() as f32,
+        }
+    }
+
+    fn q_pair(&mut self, obs: &[f32], a: &[f32], b: &[f32]) -> (f32, f32) {
+        let how = self.policy.manifest.q_aggregation;
+        let (mut qa, mut qb) = (0.0, 0.0);
+        let scratches = self.critics.iter_mut().zip(&mut self.critics_pair);
+        for (k, (critic, (sa, sb))) in self.policy.critics.iter().zip(scratches).enumerate() {
+            for (scratch, action) in [(&mut *sa, a), (&mut *sb, b)] {
+                let input = critic.input_buffer(scratch);
+                input[..obs.len()].copy_from_slice(obs);
+                input[obs.len()..].copy_from_slice(action);
+            }
+            critic.forward_pair_scratch_inputs(sa, sb);
+            qa = aggregate(how, k, qa, sa.output()[0]);
+            qb = aggregate(how, k, qb, sb.output()[0]);
+        }
+        match how {
+            QAggregation::Min => (qa, qb),
+            QAggregation::Mean => {
+                let n = self.policy.critics.len() as f32;
+                (qa / n, qb / n)
+            }
         }
     }
 
@@ -364,6 +390,10 @@ mod tests {
             eval.act(s, None, &mut a);
             assert!((a[0] - actions[(0, k)]).abs() < 1e-5 && (a[1] - actions[(1, k)]).abs() < 1e-5);
             assert!((eval.q(s, &a) - q[k]).abs() < 1e-4);
+            let other = [0.3f32, -0.6];
+            let (qa, qb) = eval.q_pair(s, &a, &other);
+            assert!((qa - q[k]).abs() < 1e-4);
+            assert!((qb - eval.q(s, &other)).abs() < 1e-4);
         }
     }
 

@@ -213,8 +213,12 @@ impl Prac for PracService {
                         };
                         let response = state.step(&request);
                         let failed = response.is_err();
+                        if !send(&tx, response, &state.shutdown).await {
+                            let _ = tx.try_send(Err(shutting_down()));
+                            break;
+                        }
                         // The first error ends the stream (gRPC carries a status only at the end).
-                        if !send(&tx, response, &state.shutdown).await || failed {
+                        if failed {
                             break;
                         }
                     }
