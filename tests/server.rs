@@ -719,6 +719,10 @@ async fn bad_bundles_are_skipped_with_their_reason_or_fatal_with_strict() {
         &bytes[..bytes.len() / 2],
     )
     .unwrap();
+    let mut no_model = toy_policy("nomodel", 4);
+    no_model.manifest.model = None;
+    no_model.model = None;
+    prac::bundle::save(&no_model, &dir.path().join("nomodel.safetensors")).unwrap();
     let server = Server::start(dir.path(), &["--log-format", "json"]);
     server.wait_serving().await;
     let mut client = server.client().await;
@@ -738,13 +742,20 @@ async fn bad_bundles_are_skipped_with_their_reason_or_fatal_with_strict() {
         .lines()
         .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{e}: {l}")))
         .collect();
-    let skipped = lines
+    let skipped: Vec<&str> = lines
         .iter()
-        .find(|l| l["fields"]["message"] == "skipping bad bundle")
-        .unwrap_or_else(|| panic!("{log}"));
-    assert_eq!(skipped["level"], "ERROR");
-    let error = skipped["fields"]["error"].as_str().unwrap();
-    assert!(error.contains("broken.safetensors: safetensors"), "{error}");
+        .filter(|l| l["fields"]["message"] == "skipping bad bundle" && l["level"] == "ERROR")
+        .map(|l| l["fields"]["error"].as_str().unwrap())
+        .collect();
+    assert_eq!(skipped.len(), 2, "{log}");
+    assert!(
+        skipped[0].contains("broken.safetensors: safetensors"),
+        "{skipped:?}"
+    );
+    assert!(
+        skipped[1].contains("nomodel.safetensors: manifest.model: absent"),
+        "{skipped:?}"
+    );
     drop(server);
 
     let mut strict = Server::start(dir.path(), &["--strict"]);

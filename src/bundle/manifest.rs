@@ -22,8 +22,10 @@ pub struct Manifest {
     pub gamma: f64,
     pub actor: NetSpec,
     pub critic: CriticSpec,
-    pub model: NetSpec,
-    pub model_normalization: Normalization,
+    /// The dynamics model; absent in bundles made from agents trained elsewhere until
+    /// `prac fit-model` adds one. The server needs it to imagine plans.
+    #[serde(default)]
+    pub model: Option<ModelSpec>,
     #[serde(default)]
     pub q_aggregation: QAggregation,
     /// Discounted start-state values, for eps coefficients; absent means absolute eps only.
@@ -37,6 +39,14 @@ pub struct Manifest {
 pub struct NetSpec {
     pub hidden: Vec<usize>,
     pub activation: Activation,
+}
+
+/// The dynamics model: hidden widths, activation and its input/output normalisation.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ModelSpec {
+    pub hidden: Vec<usize>,
+    pub activation: Activation,
+    pub normalization: Normalization,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -155,16 +165,21 @@ impl Manifest {
         if self.critic.n_critics == 0 {
             return fail("critic.n_critics", "is 0, expected at least 1".into());
         }
+        let no_hidden = Vec::new();
+        let model_hidden = self.model.as_ref().map_or(&no_hidden, |m| &m.hidden);
         for (field, hidden) in [
             ("actor.hidden", &self.actor.hidden),
             ("critic.hidden", &self.critic.hidden),
-            ("model.hidden", &self.model.hidden),
+            ("model.hidden", model_hidden),
         ] {
             if let Some(i) = hidden.iter().position(|&w| w == 0) {
                 return fail(&format!("{field}[{i}]"), "is 0, layers need a width".into());
             }
         }
-        let n = &self.model_normalization;
+        let Some(model) = &self.model else {
+            return self.validate_value_scale();
+        };
+        let n = &model.normalization;
         for (field, values, dim, is_std) in [
             ("obs_mean", &n.obs_mean, self.obs_dim, false),
             ("obs_std", &n.obs_std, self.obs_dim, true),
@@ -173,7 +188,7 @@ impl Manifest {
             ("delta_mean", &n.delta_mean, self.obs_dim, false),
             ("delta_std", &n.delta_std, self.obs_dim, true),
         ] {
-            let field = format!("model_normalization.{field}");
+            let field = format!("model.normalization.{field}");
             check_vector(&field, values, dim)?;
             if is_std && let Some(i) = values.iter().position(|&v| v <= 0.0) {
                 return fail(
@@ -182,12 +197,17 @@ impl Manifest {
                 );
             }
         }
-        if let Some(scale) = self.value_scale
-            && (!scale.v_pi.is_finite() || !scale.v_rand.is_finite())
-        {
-            return fail("value_scale", "holds a non-finite value".into());
+        self.validate_value_scale()
+    }
+
+    fn validate_value_scale(&self) -> Result<(), (String, String)> {
+        match self.value_scale {
+            Some(scale) if !scale.v_pi.is_finite() || !scale.v_rand.is_finite() => Err((
+                "value_scale".to_string(),
+                "holds a non-finite value".to_string(),
+            )),
+            _ => Ok(()),
         }
-        Ok(())
     }
 }
 

@@ -140,18 +140,24 @@ pub fn from_bytes(bytes: &[u8], path: &Path) -> Result<Policy, BundleError> {
                 .map_err(|e| err(&prefix, e.to_string()))?,
         );
     }
-    let model_layers = reader.chain(MODEL_NET, obs + act, &manifest.model.hidden, Some(obs))?;
-    let model_net = Mlp::new(obs + act, model_layers, manifest.model.activation, false)
-        .map_err(|e| err(MODEL_NET, e.to_string()))?;
+    let model = match &manifest.model {
+        None => None,
+        Some(spec) => {
+            let layers = reader.chain(MODEL_NET, obs + act, &spec.hidden, Some(obs))?;
+            let net = Mlp::new(obs + act, layers, spec.activation, false)
+                .map_err(|e| err(MODEL_NET, e.to_string()))?;
+            Some(DynamicsModel {
+                net,
+                normalization: spec.normalization.clone(),
+            })
+        }
+    };
 
     Ok(Policy {
         content_hash: content_hash(bytes),
         actor: Actor { trunk, mu, log_std },
         critics,
-        model: DynamicsModel {
-            net: model_net,
-            normalization: manifest.model_normalization.clone(),
-        },
+        model,
         manifest,
     })
 }
@@ -257,7 +263,9 @@ pub fn tensors(policy: &Policy) -> Vec<NamedTensor> {
     for (k, critic) in policy.critics.iter().enumerate() {
         push_chain(&mut out, &critic_prefix(k), critic);
     }
-    push_chain(&mut out, MODEL_NET, &policy.model.net);
+    if let Some(model) = &policy.model {
+        push_chain(&mut out, MODEL_NET, &model.net);
+    }
     out
 }
 

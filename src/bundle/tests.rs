@@ -161,12 +161,12 @@ fn manifest_problems_are_named() {
         (|m| m.gamma = 1.5, "manifest.gamma"),
         (|m| m.critic.n_critics = 0, "manifest.critic.n_critics"),
         (
-            |m| m.model_normalization.delta_std[2] = 0.0,
-            "manifest.model_normalization.delta_std[2]",
+            |m| m.model.as_mut().unwrap().normalization.delta_std[2] = 0.0,
+            "manifest.model.normalization.delta_std[2]",
         ),
         (
-            |m| m.model_normalization.obs_mean.push(0.0),
-            "manifest.model_normalization.obs_mean",
+            |m| m.model.as_mut().unwrap().normalization.obs_mean.push(0.0),
+            "manifest.model.normalization.obs_mean",
         ),
     ];
     for (corrupt, field) in cases {
@@ -245,4 +245,19 @@ fn save_and_load_a_file() {
     let e = load(&dir.join("absent.safetensors")).unwrap_err();
     assert_eq!(e.field, "file");
     std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn a_bundle_without_a_model_loads_and_cannot_imagine() {
+    let mut policy = small_policy();
+    policy.manifest.model = None;
+    policy.model = None;
+    let bytes = to_bytes(&policy).unwrap();
+    let loaded = from_bytes(&bytes, &path()).unwrap();
+    assert!(loaded.model.is_none());
+    assert!(!tensors(&loaded).iter().any(|t| t.0.starts_with("model.")));
+    let mut eval = Evaluator::new(Arc::new(loaded));
+    let mut next = [0.0; 4];
+    eval.predict_next(&[0.0; 4], &[0.0; 2], &mut next);
+    assert!(next.iter().all(|v| v.is_nan()));
 }

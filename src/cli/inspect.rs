@@ -41,10 +41,13 @@ pub fn run(path: &Path, json: bool) -> anyhow::Result<String> {
         m.critic.activation,
         m.q_aggregation.as_str()
     ));
-    line(format!(
-        "model        hidden {:?} {:?}, predicts normalised s' - s",
-        m.model.hidden, m.model.activation
-    ));
+    match &m.model {
+        Some(model) => line(format!(
+            "model        hidden {:?} {:?}, predicts normalised s' - s",
+            model.hidden, model.activation
+        )),
+        None => line("model        none (add one with prac fit-model; serving needs it)".into()),
+    }
     match m.value_scale {
         Some(v) => line(format!(
             "value scale  V_pi(s0) = {}, V_rand(s0) = {} (eps = coef x {})",
@@ -60,19 +63,28 @@ pub fn run(path: &Path, json: bool) -> anyhow::Result<String> {
         p.trainer, p.steps, p.seed, p.date
     ));
 
-    // One forward pass at the model's mean observation, a state of the training distribution.
-    let obs = m.model_normalization.obs_mean.clone();
+    // One forward pass at the model's mean observation (a state of the training distribution),
+    // or at zeros without a model.
+    let (obs, at) = match &m.model {
+        Some(model) => (
+            model.normalization.obs_mean.clone(),
+            "model.normalization.obs_mean",
+        ),
+        None => (vec![0.0; m.obs_dim], "0"),
+    };
     let mut eval = Evaluator::new(policy.clone());
     let mut squashed = vec![0.0; m.act_dim];
     eval.act(&obs, None, &mut squashed);
     let q = eval.q(&obs, &squashed);
-    let mut next = vec![0.0; m.obs_dim];
-    eval.predict_next(&obs, &squashed, &mut next);
     let mut action = vec![0.0; m.act_dim];
     policy.unscale_action(&squashed, &mut action);
-    line("forward pass at s = model_normalization.obs_mean:".to_string());
+    line(format!("forward pass at s = {at}:"));
     line(format!("  pi(s)      {action:?}"));
     line(format!("  Q(s,pi(s)) {q}"));
-    line(format!("  P(s,pi(s)) {next:?}"));
+    if policy.model.is_some() {
+        let mut next = vec![0.0; m.obs_dim];
+        eval.predict_next(&obs, &squashed, &mut next);
+        line(format!("  P(s,pi(s)) {next:?}"));
+    }
     Ok(out)
 }

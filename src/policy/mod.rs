@@ -39,7 +39,8 @@ pub struct Policy {
     pub content_hash: String,
     pub actor: Actor,
     pub critics: Vec<Mlp>,
-    pub model: DynamicsModel,
+    /// None for a bundle without a dynamics model (which cannot imagine plans).
+    pub model: Option<DynamicsModel>,
 }
 
 impl Policy {
@@ -87,23 +88,23 @@ impl Policy {
                 .expect("consistent shapes")
             })
             .collect();
-        let model_net = Mlp::new(
-            obs + act,
-            chain(obs + act, &manifest.model.hidden, Some(obs)),
-            manifest.model.activation,
-            false,
-        )
-        .expect("consistent shapes");
+        let model = manifest.model.as_ref().map(|spec| DynamicsModel {
+            net: Mlp::new(
+                obs + act,
+                chain(obs + act, &spec.hidden, Some(obs)),
+                spec.activation,
+                false,
+            )
+            .expect("consistent shapes"),
+            normalization: spec.normalization.clone(),
+        });
         let mu = chain(latent, &[], Some(act)).remove(0);
         let log_std = chain(latent, &[], Some(act)).remove(0);
         Policy {
             content_hash: String::new(),
             actor: Actor { trunk, mu, log_std },
             critics,
-            model: DynamicsModel {
-                net: model_net,
-                normalization: manifest.model_normalization.clone(),
-            },
+            model,
             manifest,
         }
     }
@@ -131,7 +132,7 @@ impl Policy {
         (
             self.actor.trunk.flops() + head,
             critic,
-            self.model.net.flops(),
+            self.model.as_ref().map_or(0, |m| m.net.flops()),
         )
     }
 
@@ -187,7 +188,7 @@ pub struct Evaluator {
     critics: Vec<MlpScratch>,
     /// Second state of each critic's pair forward.
     critics_pair: Vec<MlpScratch>,
-    model: MlpScratch,
+    model: Option<MlpScratch>,
 }
 
 impl Evaluator {
@@ -198,7 +199,7 @@ impl Evaluator {
             log_std: DVector::zeros(policy.act_dim()),
             critics: policy.critics.iter().map(Mlp::scratch).collect(),
             critics_pair: policy.critics.iter().map(Mlp::scratch).collect(),
-            model: policy.model.net.scratch(),
+            model: policy.model.as_ref().map(|m| m.net.scratch()),
             policy,
         }
     }
@@ -283,9 +284,13 @@ impl Networks for Evaluator {
     }
 
     fn predict_next(&mut self, obs: &[f32], action: &[f32], next_obs: &mut [f32]) {
-        let model = &self.policy.model;
+        // Without a model there is no prediction: NaN makes Replan refuse the plan (NonFinite).
+        let (Some(model), Some(scratch)) = (&self.policy.model, &mut self.model) else {
+            next_obs.fill(f32::NAN);
+            return;
+        };
         let n = &model.normalization;
-        let input = model.net.input_buffer(&mut self.model);
+        let input = model.net.input_buffer(scratch);
         let (input_obs, input_act) = input.split_at_mut(obs.len());
         for i in 0..obs.len() {
             input_obs[i] = (obs[i] - n.obs_mean[i]) / n.obs_std[i];
@@ -293,7 +298,7 @@ impl Networks for Evaluator {
         for i in 0..action.len() {
             input_act[i] = (action[i] - n.action_mean[i]) / n.action_std[i];
         }
-        let delta = model.net.forward_scratch_input(&mut self.model);
+        let delta = model.net.forward_scratch_input(scratch);
         for i in 0..obs.len() {
             next_obs[i] = obs[i] + delta[i] * n.delta_std[i] + n.delta_mean[i];
         }
@@ -323,7 +328,7 @@ pub fn test_manifest(
     hidden: &[usize],
     model_hidden: &[usize],
 ) -> Manifest {
-    use crate::bundle::{CriticSpec, FORMAT_VERSION, NetSpec, Provenance, ValueScale};
+    use crate::bundle::{CriticSpec, FORMAT_VERSION, ModelSpec, NetSpec, Provenance, ValueScale};
     Manifest {
         format_version: FORMAT_VERSION,
         name: name.to_string(),
@@ -342,11 +347,11 @@ pub fn test_manifest(
             hidden: hidden.to_vec(),
             activation: Activation::Relu,
         },
-        model: NetSpec {
+        model: Some(ModelSpec {
             hidden: model_hidden.to_vec(),
             activation: Activation::Relu,
-        },
-        model_normalization: Normalization::identity(obs_dim, act_dim),
+            normalization: Normalization::identity(obs_dim, act_dim),
+        }),
         q_aggregation: QAggregation::Min,
         value_scale: Some(ValueScale {
             v_pi: 10.0,
@@ -414,12 +419,13 @@ mod tests {
     #[test]
     fn model_predicts_the_denormalised_delta() {
         let mut manifest = test_manifest("t", "d", 2, 1, &[4], &[]);
-        manifest.model_normalization.delta_mean = vec![1.0, -1.0];
-        manifest.model_normalization.delta_std = vec![2.0, 2.0];
-        manifest.model_normalization.obs_std = vec![0.5, 0.5];
+        let normalization = &mut manifest.model.as_mut().unwrap().normalization;
+        normalization.delta_mean = vec![1.0, -1.0];
+        normalization.delta_std = vec![2.0, 2.0];
+        normalization.obs_std = vec![0.5, 0.5];
         let mut policy = Policy::random(manifest, 0);
         // A linear model (no hidden layers) whose output is its first two inputs.
-        policy.model.net = Mlp::new(
+        policy.model.as_mut().unwrap().net = Mlp::new(
             3,
             vec![Dense::from_row_major(
                 2,

@@ -51,6 +51,13 @@ impl Registry {
                 continue;
             };
             match bundle::load(&file) {
+                Ok(policy) if policy.model.is_none() => errors.push(BundleError {
+                    file: file.clone(),
+                    field: "manifest.model".into(),
+                    reason: "absent: PrAC needs a dynamics model to imagine plans; add one with \
+                             prac fit-model"
+                        .into(),
+                }),
                 Ok(policy) => {
                     if policy.manifest.name != name {
                         tracing::warn!(
