@@ -1,0 +1,45 @@
+"""Channel settings shared by the sync and asyncio clients."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import grpc
+
+
+@dataclass(frozen=True)
+class TlsConfig:
+    """TLS for the channel: PEM bytes; all None means the system's root certificates."""
+
+    root_certificates: bytes | None = None
+    private_key: bytes | None = None
+    certificate_chain: bytes | None = None
+
+    def credentials(self) -> grpc.ChannelCredentials:
+        return grpc.ssl_channel_credentials(self.root_certificates, self.private_key, self.certificate_chain)
+
+
+Tls = TlsConfig | grpc.ChannelCredentials | bool | None
+
+# Generous limits; the server enforces its own (--max-message-bytes).
+CHANNEL_OPTIONS: Sequence[tuple[str, int]] = (
+    ("grpc.max_receive_message_length", 64 << 20),
+    ("grpc.max_send_message_length", 64 << 20),
+)
+
+
+def credentials(tls: Tls) -> grpc.ChannelCredentials | None:
+    """None for a plaintext channel."""
+    if tls is None or tls is False:
+        return None
+    if tls is True:
+        return grpc.ssl_channel_credentials()
+    if isinstance(tls, TlsConfig):
+        return tls.credentials()
+    return tls
+
+
+def metadata(token: str | None) -> tuple[tuple[str, str], ...]:
+    """The bearer token as call metadata (servers with auth enabled check it)."""
+    return (("authorization", f"Bearer {token}"),) if token else ()

@@ -1,0 +1,97 @@
+"""Records transitions (obs, action, next_obs) from a gymnasium environment, for `prac fit-model`.
+
+    python -m prac_client.record --env Pendulum-v1 --episodes 20 --out transitions.safetensors \\
+        (--server 127.0.0.1:50051 --policy pendulum [--epsilon-coef C] | --sb3 MODEL.zip)
+
+Writes float32 arrays obs [N, obs_dim], action [N, act_dim] (as executed, in the environment's
+units), next_obs [N, obs_dim], reward [N] and done [N] (1 where the episode terminated).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Any, Callable
+
+import numpy as np
+import numpy.typing as npt
+
+Policy = Callable[[npt.NDArray[np.float32], bool], npt.NDArray[np.float32]]
+
+
+def record(env: Any, act: Policy, episodes: int, *, seed: int = 0) -> dict[str, npt.NDArray[np.float32]]:
+    """Plays `episodes` episodes; `act(obs, first_step)` chooses each action."""
+    columns: dict[str, list[Any]] = {"obs": [], "action": [], "next_obs": [], "reward": [], "done": []}
+    for episode in range(episodes):
+        obs, _ = env.reset(seed=seed + episode)
+        first = True
+        while True:
+            action = np.asarray(act(np.asarray(obs, dtype=np.float32), first), dtype=np.float32)
+            first = False
+            next_obs, reward, terminated, truncated, _ = env.step(action.astype(env.action_space.dtype))
+            columns["obs"].append(obs)
+            columns["action"].append(action)
+            columns["next_obs"].append(next_obs)
+            columns["reward"].append(reward)
+            columns["done"].append(float(terminated))
+            obs = next_obs
+            if terminated or truncated:
+                break
+    return {k: np.asarray(v, dtype=np.float32) for k, v in columns.items()}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m prac_client.record", description=__doc__.split("\n")[0])
+    parser.add_argument("--env", required=True, help="gymnasium environment id, e.g. Pendulum-v1")
+    parser.add_argument("--episodes", type=int, default=10)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", required=True)
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--server", help="a prac server address (with --policy)")
+    source.add_argument("--sb3", help="an SB3 checkpoint (.zip); needs stable-baselines3")
+    parser.add_argument("--policy", help="the served policy's name")
+    parser.add_argument("--epsilon-coef", type=float, default=0.0)
+    args = parser.parse_args(argv)
+
+    import gymnasium
+
+    from safetensors.numpy import save_file
+
+    env = gymnasium.make(args.env)
+    if args.server:
+        if not args.policy:
+            parser.error("--server needs --policy")
+        from prac_client import Client
+
+        client = Client(args.server)
+        session = client.session(args.policy, epsilon_coef=args.epsilon_coef)
+
+        def act(obs: npt.NDArray[np.float32], first: bool) -> npt.NDArray[np.float32]:
+            return session.step(obs, new_episode=first).action
+
+        data = record(env, act, args.episodes, seed=args.seed)
+        session.close()
+        client.close()
+        source_name = f"prac:{args.server}/{args.policy}"
+    else:
+        try:
+            from stable_baselines3 import SAC
+        except ImportError:
+            raise SystemExit("--sb3 needs stable-baselines3: pip install 'prac-client[sb3]'") from None
+        model = SAC.load(args.sb3, device="cpu")
+
+        def act_sb3(obs: npt.NDArray[np.float32], first: bool) -> npt.NDArray[np.float32]:
+            action, _ = model.predict(obs, deterministic=True)
+            return np.asarray(action, dtype=np.float32)
+
+        data = record(env, act_sb3, args.episodes, seed=args.seed)
+        source_name = f"sb3:{args.sb3}"
+    metadata = {"env": args.env, "episodes": str(args.episodes), "seed": str(args.seed), "policy": source_name}
+    save_file(data, args.out, metadata=metadata)
+    print(json.dumps({"out": args.out, "transitions": int(data["obs"].shape[0]), **metadata}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

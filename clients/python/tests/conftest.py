@@ -1,0 +1,116 @@
+"""Fixtures: bundles written by test code and a real `prac serve` on a free port."""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import subprocess
+import time
+from typing import Callable, Iterator
+
+import pytest
+
+from prac_client import Client, ServerUnavailable
+from prac_client.bundle import from_sb3_state_dict, random_model, random_sb3_state_dict, write_bundle
+
+REPO = pathlib.Path(__file__).resolve().parents[3]
+
+
+def prac_bin() -> str:
+    """PRAC_BIN, else the repository's debug build (built if missing)."""
+    if "PRAC_BIN" in os.environ:
+        return os.environ["PRAC_BIN"]
+    path = REPO / "target" / "debug" / "prac"
+    if not path.exists():
+        subprocess.run(["cargo", "build", "--bin", "prac"], cwd=REPO, check=True)
+    return str(path)
+
+
+def write_toy_bundle(directory: pathlib.Path, name: str = "pendulum", *, model: bool = True, seed: int = 1) -> pathlib.Path:
+    """A random Pendulum-shaped policy: obs 3, act 1 in [-2, 2], value scale (10, -10)."""
+    state = random_sb3_state_dict(3, 1, [32, 32], seed=seed)
+    tensors, manifest = from_sb3_state_dict(
+        state,
+        name=name,
+        domain="pendulum",
+        action_low=[-2.0],
+        action_high=[2.0],
+        gamma=0.98,
+        value_scale=(10.0, -10.0),
+        model=random_model(3, 1, [16, 16], seed=seed) if model else None,
+    )
+    path = directory / f"{name}.safetensors"
+    write_bundle(path, tensors, manifest)
+    return path
+
+
+class Server:
+    def __init__(self, bundles: pathlib.Path, *args: str) -> None:
+        self.stderr_path = bundles / "server.log"
+        self.process = subprocess.Popen(
+            [prac_bin(), "serve", "--listen", "127.0.0.1:0", "--bundles", str(bundles), *args],
+            stdout=subprocess.PIPE,
+            stderr=open(self.stderr_path, "w"),
+            text=True,
+        )
+        assert self.process.stdout is not None
+        line = self.process.stdout.readline()
+        if not line.startswith("listening on "):
+            raise RuntimeError(f"server did not start: {line!r} {self.stderr_path.read_text()}")
+        self.address = line.removeprefix("listening on ").strip()
+        self._wait_loaded()
+
+    def _wait_loaded(self) -> None:
+        deadline = time.monotonic() + 20
+        with Client(self.address, timeout=2) as client:
+            while True:
+                try:
+                    client.policies()
+                    return
+                except ServerUnavailable:
+                    if time.monotonic() > deadline:
+                        raise
+                    time.sleep(0.02)
+
+    def stop(self) -> None:
+        self.process.terminate()
+        try:
+            self.process.wait(10)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+
+
+@pytest.fixture(scope="session")
+def bundles(tmp_path_factory: pytest.TempPathFactory) -> pathlib.Path:
+    directory = tmp_path_factory.mktemp("bundles")
+    write_toy_bundle(directory)
+    return directory
+
+
+@pytest.fixture(scope="session")
+def server(bundles: pathlib.Path) -> Iterator[Server]:
+    s = Server(bundles)
+    yield s
+    s.stop()
+
+
+@pytest.fixture
+def start_server(tmp_path: pathlib.Path) -> Iterator[Callable[..., Server]]:
+    """Starts a server with extra flags on the toy bundle; stopped after the test."""
+    started: list[Server] = []
+
+    def start(*args: str) -> Server:
+        write_toy_bundle(tmp_path)
+        s = Server(tmp_path, *args)
+        started.append(s)
+        return s
+
+    yield start
+    for s in started:
+        s.stop()
+
+
+@pytest.fixture
+def client(server: Server) -> Iterator[Client]:
+    with Client(server.address, timeout=10) as c:
+        yield c

@@ -1,0 +1,21 @@
+"""The committed gRPC stubs are what generate_stubs.py makes from proto/ now."""
+
+from __future__ import annotations
+
+import pathlib
+import sys
+
+HERE = pathlib.Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(HERE))
+
+from generate_stubs import generate  # noqa: E402
+
+
+def test_committed_stubs_are_up_to_date(tmp_path: pathlib.Path) -> None:
+    fresh = generate(tmp_path)
+    committed_root = HERE / "src"
+    for path in fresh:
+        relative = path.relative_to(tmp_path)
+        committed = committed_root / relative
+        assert committed.exists(), f"{relative} is not committed: run python generate_stubs.py"
+        assert committed.read_bytes() == path.read_bytes(), f"{relative} is stale: run python generate_stubs.py"
