@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import pathlib
+import signal
 import subprocess
 import time
 from typing import Callable, Iterator
@@ -71,6 +72,16 @@ class Server:
                     if time.monotonic() > deadline:
                         raise
                     time.sleep(0.02)
+
+    def pause(self) -> None:
+        """SIGSTOP, and wait until the process is really stopped."""
+        os.kill(self.process.pid, signal.SIGSTOP)
+        stat = pathlib.Path(f"/proc/{self.process.pid}/stat")
+        while stat.read_text().split(") ")[1][0] != "T":
+            time.sleep(0.01)
+
+    def resume(self) -> None:
+        os.kill(self.process.pid, signal.SIGCONT)
 
     def stop(self) -> None:
         self.process.terminate()

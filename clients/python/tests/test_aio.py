@@ -69,3 +69,17 @@ async def test_aio_sessions_run_concurrently(server: Server) -> None:
                 return (await s.plan()).start_step
 
         assert await asyncio.gather(*(run(k) for k in range(8))) == [49] * 8
+
+
+async def test_aio_timeout_bounds_a_step(start_server) -> None:  # type: ignore[no-untyped-def]
+    server: Server = start_server()
+    async with aio.Client(server.address, timeout=0.5) as client:
+        async with client.session("pendulum") as session:
+            await session.step([0.0, 0.0, 0.0])
+            server.pause()
+            try:
+                with pytest.raises(prac_client.DeadlineExceeded):
+                    await session.step([0.0, 0.0, 0.0])
+            finally:
+                server.resume()
+            assert (await session.step([0.0, 0.0, 0.0])).step >= 1

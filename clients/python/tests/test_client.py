@@ -159,3 +159,17 @@ def test_tls_and_token_configure_the_channel() -> None:
         assert client._metadata == (("authorization", "Bearer secret"),)
         with pytest.raises(prac_client.ServerUnavailable):
             client.policies()
+
+
+def test_timeout_bounds_a_streamed_step(start_server) -> None:  # type: ignore[no-untyped-def]
+    server: Server = start_server()
+    with Client(server.address, timeout=0.5) as client, client.session("pendulum") as session:
+        session.step([0.0, 0.0, 0.0])
+        server.pause()
+        try:
+            with pytest.raises(prac_client.DeadlineExceeded, match="0.5 s"):
+                session.step([0.0, 0.0, 0.0])
+        finally:
+            server.resume()
+        # A new stream carries on with the same session.
+        assert session.step([0.0, 0.0, 0.0]).step >= 1
