@@ -25,14 +25,18 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// Microseconds per Replan for Hopper-sized networks at plan lengths 1, 8, 32.
+    /// Microseconds per Replan for Hopper-sized networks at plan lengths 1, 8, 32, alone and
+    /// batched across sessions, against the machine's matmul rate.
     BenchReplan {
-        /// Seconds measured per plan length.
-        #[arg(long, default_value_t = 2.0)]
+        /// Seconds measured per case.
+        #[arg(long, default_value_t = 1.0)]
         seconds: f64,
         /// Plan lengths to measure.
         #[arg(long, value_delimiter = ',', default_value = "1,8,32")]
         lengths: Vec<usize>,
+        /// Sessions replanned together (cross-session batch sizes).
+        #[arg(long, value_delimiter = ',', default_value = "1,8,64")]
+        batches: Vec<usize>,
     },
 }
 
@@ -43,10 +47,17 @@ fn main() -> ExitCode {
         Command::Inspect { file, json } => {
             prac::cli::inspect::run(&file, json).map(|text| print!("{text}"))
         }
-        Command::BenchReplan { seconds, lengths } => {
+        Command::BenchReplan {
+            seconds,
+            lengths,
+            batches,
+        } => {
+            let per_case = Duration::from_secs_f64(seconds);
             let lengths: Vec<usize> = lengths.into_iter().filter(|&l| l > 0).collect();
-            let rows = prac::cli::bench::run(&lengths, Duration::from_secs_f64(seconds));
-            print!("{}", prac::cli::bench::report(&rows));
+            let batches: Vec<usize> = batches.into_iter().filter(|&b| b > 0).collect();
+            let rows = prac::cli::bench::run(&lengths, &batches, per_case);
+            let matmul = prac::cli::bench::matmul_gflops(per_case);
+            print!("{}", prac::cli::bench::report(&rows, matmul));
             Ok(())
         }
     };

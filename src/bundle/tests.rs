@@ -53,10 +53,14 @@ fn round_trip_preserves_every_output() {
     );
     let obs = [0.1, -0.3, 0.5, 0.9];
     let (mut act_a, mut act_b) = ([0.0; 2], [0.0; 2]);
-    a.act(&obs, Some(&[0.3, -1.0]), &mut act_a);
-    b.act(&obs, Some(&[0.3, -1.0]), &mut act_b);
+    a.act(&obs, &[0.3, -1.0], &mut act_a);
+    b.act(&obs, &[0.3, -1.0], &mut act_b);
     assert_eq!(act_a, act_b);
-    assert_eq!(a.q(&obs, &act_a), b.q(&obs, &act_b));
+    let (mut qa, mut qb) = ([0.0], [0.0]);
+    a.q_pair(&obs, &act_a, &[0.5, 0.5], &mut qa, &mut qb);
+    let (mut ra, mut rb) = ([0.0], [0.0]);
+    b.q_pair(&obs, &act_b, &[0.5, 0.5], &mut ra, &mut rb);
+    assert_eq!((qa, qb), (ra, rb));
     let (mut na, mut nb) = ([0.0; 4], [0.0; 4]);
     a.predict_next(&obs, &act_a, &mut na);
     b.predict_next(&obs, &act_b, &mut nb);

@@ -6,7 +6,9 @@ use std::time::{Duration, Instant};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use crate::plan::{Growth, Networks, Plan, ReplanConfig, ReplanScratch, replan};
+use crate::plan::{
+    Growth, Networks, NonFinite, Plan, ReplanConfig, ReplanJob, ReplanScratch, replan_batch,
+};
 use crate::policy::{Evaluator, Policy, hopper_sized_manifest};
 
 /// Counts network evaluations, to turn time into FLOP/s.
@@ -24,118 +26,150 @@ impl<N: Networks> Networks for Counting<N> {
     fn act_dim(&self) -> usize {
         self.inner.act_dim()
     }
-    fn act(&mut self, obs: &[f32], noise: Option<&[f32]>, action: &mut [f32]) {
-        self.acts += 1;
-        self.inner.act(obs, noise, action)
+    fn act(&mut self, obs: &[f32], noise: &[f32], actions: &mut [f32]) {
+        self.acts += (obs.len() / self.obs_dim()) as u64;
+        self.inner.act(obs, noise, actions)
     }
-    fn q(&mut self, obs: &[f32], action: &[f32]) -> f32 {
-        self.qs += 1;
-        self.inner.q(obs, action)
+    fn q_pair(&mut self, obs: &[f32], a: &[f32], b: &[f32], q_a: &mut [f32], q_b: &mut [f32]) {
+        self.qs += 2 * q_a.len() as u64;
+        self.inner.q_pair(obs, a, b, q_a, q_b)
     }
-    fn q_pair(&mut self, obs: &[f32], a: &[f32], b: &[f32]) -> (f32, f32) {
-        self.qs += 2;
-        self.inner.q_pair(obs, a, b)
-    }
-    fn predict_next(&mut self, obs: &[f32], action: &[f32], next_obs: &mut [f32]) {
-        self.predicts += 1;
-        self.inner.predict_next(obs, action, next_obs)
+    fn predict_next(&mut self, obs: &[f32], actions: &[f32], next_obs: &mut [f32]) {
+        self.predicts += (obs.len() / self.obs_dim()) as u64;
+        self.inner.predict_next(obs, actions, next_obs)
     }
 }
 
 pub struct BenchRow {
     pub plan_length: usize,
+    pub batch: usize,
     pub replans: u64,
     pub micros_per_replan: f64,
     pub gflops: f64,
 }
 
-/// Times Replan at each plan length for `per_length` wall time. The plan is held whole (eps huge,
-/// fixed length): every step checks length - 1 old actions and appends one, the costliest case.
-pub fn run(lengths: &[usize], per_length: Duration) -> Vec<BenchRow> {
+/// Times Replan at each plan length and batch size (sessions replanned together) for
+/// `per_case` wall time. Plans are held whole (eps huge, fixed length): every step checks
+/// length - 1 old actions and appends one, the costliest case. FLOPs are the dense count (the
+/// kernel skips ReLU zeros, so the rate is a dense-equivalent one).
+pub fn run(lengths: &[usize], batches: &[usize], per_case: Duration) -> Vec<BenchRow> {
     let policy = Arc::new(Policy::random(hopper_sized_manifest(), 1));
     let (actor_flops, critic_flops, model_flops) = policy.flops();
     let n_critics = policy.critics.len() as u64;
     let (obs_dim, act_dim) = (policy.obs_dim(), policy.act_dim());
     let mut rows = Vec::new();
     for &length in lengths {
-        let config = ReplanConfig {
-            epsilon: f32::MAX,
-            growth: Growth::Fixed(length),
-            max_horizon: length,
-            sampled: false,
-        };
-        let mut nets = Counting {
-            inner: Evaluator::new(policy.clone()),
-            acts: 0,
-            qs: 0,
-            predicts: 0,
-        };
-        let mut rng = ChaCha8Rng::seed_from_u64(0);
-        let mut scratch = ReplanScratch::new(obs_dim, act_dim);
-        let mut plan = Plan::with_capacity(obs_dim, act_dim, length + 1);
-        let mut spare = plan.clone();
-        let base: Vec<f32> = (0..obs_dim).map(|i| (i as f32 * 0.7).sin()).collect();
-        let mut state = base.clone();
-        let mut one = |nets: &mut Counting<Evaluator>, t: u64, state: &mut Vec<f32>| {
-            let old = if t == 0 {
-                plan.tail(plan.len())
-            } else {
-                plan.tail(1)
+        for &batch in batches {
+            let config = ReplanConfig {
+                epsilon: f32::MAX,
+                growth: Growth::Fixed(length),
+                max_horizon: length,
+                sampled: false,
             };
-            replan(
-                nets,
-                &config,
-                state,
-                t,
-                old,
-                &mut spare,
-                &mut scratch,
-                &mut rng,
-            )
-            .expect("finite networks");
-            std::mem::swap(&mut plan, &mut spare);
-            // A nearby state each step (a random model followed for long would diverge).
-            let i = t as usize % state.len();
-            state[i] = base[i] + 0.01 * ((t % 7) as f32);
-        };
-        for t in 0..length as u64 + 10 {
-            one(&mut nets, t, &mut state);
-        }
-        nets.acts = 0;
-        nets.qs = 0;
-        nets.predicts = 0;
-        let start = Instant::now();
-        let mut replans = 0u64;
-        while start.elapsed() < per_length {
-            for _ in 0..64 {
-                one(&mut nets, 1000 + replans, &mut state);
-                replans += 1;
+            let mut nets = Counting {
+                inner: Evaluator::with_capacity(policy.clone(), batch),
+                acts: 0,
+                qs: 0,
+                predicts: 0,
+            };
+            let mut rngs: Vec<ChaCha8Rng> =
+                (0..batch as u64).map(ChaCha8Rng::seed_from_u64).collect();
+            let mut scratch = ReplanScratch::with_capacity(obs_dim, act_dim, batch);
+            let mut plans: Vec<Plan> = (0..batch)
+                .map(|_| Plan::with_capacity(obs_dim, act_dim, length + 1))
+                .collect();
+            let mut spares = plans.clone();
+            let base: Vec<Vec<f32>> = (0..batch)
+                .map(|b| (0..obs_dim).map(|i| ((i + b) as f32 * 0.7).sin()).collect())
+                .collect();
+            let mut states = base.clone();
+            let mut results = vec![Err(NonFinite { what: "", index: 0 }); batch];
+            let mut step = |nets: &mut Counting<Evaluator>, t: u64| {
+                let mut jobs: Vec<ReplanJob<'_, ChaCha8Rng>> = plans
+                    .iter()
+                    .zip(spares.iter_mut())
+                    .zip(rngs.iter_mut())
+                    .zip(&states)
+                    .map(|(((plan, new), rng), state)| ReplanJob {
+                        config,
+                        state,
+                        step: t,
+                        old: if t == 0 {
+                            plan.tail(plan.len())
+                        } else {
+                            plan.tail(1)
+                        },
+                        new,
+                        rng,
+                    })
+                    .collect();
+                replan_batch(nets, &mut jobs, &mut scratch, &mut results);
+                drop(jobs);
+                assert!(results.iter().all(Result::is_ok), "finite networks");
+                std::mem::swap(&mut plans, &mut spares);
+                // A nearby state each step (a random model followed for long would diverge).
+                for (state, base) in states.iter_mut().zip(&base) {
+                    let i = t as usize % state.len();
+                    state[i] = base[i] + 0.01 * ((t % 7) as f32);
+                }
+            };
+            for t in 0..length as u64 + 10 {
+                step(&mut nets, t);
             }
+            nets.acts = 0;
+            nets.qs = 0;
+            nets.predicts = 0;
+            let start = Instant::now();
+            let mut steps = 0u64;
+            while start.elapsed() < per_case {
+                step(&mut nets, 1000 + steps);
+                steps += 1;
+            }
+            let seconds = start.elapsed().as_secs_f64();
+            let flops = nets.acts * actor_flops
+                + nets.qs * critic_flops * n_critics
+                + nets.predicts * model_flops;
+            let replans = steps * batch as u64;
+            rows.push(BenchRow {
+                plan_length: length,
+                batch,
+                replans,
+                micros_per_replan: seconds * 1e6 / replans as f64,
+                gflops: flops as f64 / seconds / 1e9,
+            });
         }
-        let seconds = start.elapsed().as_secs_f64();
-        let flops = nets.acts * actor_flops
-            + nets.qs * critic_flops * n_critics
-            + nets.predicts * model_flops;
-        rows.push(BenchRow {
-            plan_length: length,
-            replans,
-            micros_per_replan: seconds * 1e6 / replans as f64,
-            gflops: flops as f64 / seconds / 1e9,
-        });
     }
     rows
 }
 
-pub fn report(rows: &[BenchRow]) -> String {
-    let mut out = String::from(
+/// The machine's single-thread f32 matrix-multiply rate: 512 x 512 x 512 with matrixmultiply
+/// (via nalgebra), the reference for Replan's GFLOP/s.
+pub fn matmul_gflops(per_case: Duration) -> f64 {
+    let n = 512;
+    let a = nalgebra::DMatrix::<f32>::from_fn(n, n, |i, j| ((i * 7 + j) % 13) as f32 * 0.1);
+    let b = a.transpose();
+    let mut c = nalgebra::DMatrix::<f32>::zeros(n, n);
+    c.gemm(1.0, &a, &b, 0.0);
+    let start = Instant::now();
+    let mut runs = 0u64;
+    while start.elapsed() < per_case {
+        c.gemm(1.0, &a, &b, 0.0);
+        runs += 1;
+    }
+    (2 * n * n * n) as f64 * runs as f64 / start.elapsed().as_secs_f64() / 1e9
+}
+
+pub fn report(rows: &[BenchRow], matmul: f64) -> String {
+    let mut out = format!(
         "Replan, Hopper-sized networks (actor, 2 critics [256, 256]; model 4 x 64; obs 15, act 3)\n\
-         whole plan kept (worst case), one thread, f32\n\
-         plan_length  replans  us/replan  GFLOP/s\n",
+         whole plan kept (worst case), one thread, f32; dense-equivalent GFLOP/s\n\
+         machine matmul (512^3 sgemm, matrixmultiply, 1 thread): {matmul:.1} GFLOP/s\n\
+         plan_length  batch  replans  us/replan  GFLOP/s\n"
     );
     for r in rows {
         out.push_str(&format!(
-            "{:>11}  {:>7}  {:>9.1}  {:>7.2}\n",
-            r.plan_length, r.replans, r.micros_per_replan, r.gflops
+            "{:>11}  {:>5}  {:>7}  {:>9.1}  {:>7.2}\n",
+            r.plan_length, r.batch, r.replans, r.micros_per_replan, r.gflops
         ));
     }
     out

@@ -74,8 +74,10 @@ pub fn run(path: &Path, json: bool) -> anyhow::Result<String> {
     };
     let mut eval = Evaluator::new(policy.clone());
     let mut squashed = vec![0.0; m.act_dim];
-    eval.act(&obs, None, &mut squashed);
-    let q = eval.q(&obs, &squashed);
+    eval.act(&obs, &vec![0.0; m.act_dim], &mut squashed);
+    let (mut q, mut same) = ([0.0], [0.0]);
+    eval.q_pair(&obs, &squashed, &squashed, &mut q, &mut same);
+    let q = q[0];
     let mut action = vec![0.0; m.act_dim];
     policy.unscale_action(&squashed, &mut action);
     line(format!("forward pass at s = {at}:"));

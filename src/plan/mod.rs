@@ -1,5 +1,7 @@
 //! Replan (Algorithm 2 of the PrAC paper): one pure, seeded function over the three networks,
-//! shared by the server and by training.
+//! shared by the server and by training. It runs many sessions' replans in lockstep so that each
+//! round evaluates the networks once over all of them (cross-session batching); a single replan
+//! is a batch of one.
 //!
 //! Actions inside a plan are in the policy's squashed space [-1, 1]^act_dim, which is what the
 //! critics and the model take; the server maps them to the action bounds only when answering.
@@ -7,23 +9,21 @@
 use rand::Rng;
 use rand_distr::StandardNormal;
 
-/// The three networks Replan needs. Implementations own their scratch buffers (hence `&mut self`)
-/// so that a step does not allocate.
+/// The three networks Replan needs, over batches of states stored as rows (n rows of obs_dim
+/// values, etc.). Implementations own their scratch buffers (hence `&mut self`), so that a step
+/// does not allocate once a batch size has been seen. A row's result must not depend on the
+/// other rows of its batch.
 pub trait Networks {
     fn obs_dim(&self) -> usize;
     fn act_dim(&self) -> usize;
-    /// The policy's action at `obs`, in [-1, 1]: `tanh(mu)` when `noise` is `None`, otherwise
-    /// `tanh(mu + std * noise)` with `noise` standard normal (one value per action dimension).
-    fn act(&mut self, obs: &[f32], noise: Option<&[f32]>, action: &mut [f32]);
-    /// The aggregated critic value Q(obs, action).
-    fn q(&mut self, obs: &[f32], action: &[f32]) -> f32;
-    /// Q(obs, a) and Q(obs, b) together (Replan's test compares two actions at one state);
-    /// implementations may share the weight reads.
-    fn q_pair(&mut self, obs: &[f32], a: &[f32], b: &[f32]) -> (f32, f32) {
-        (self.q(obs, a), self.q(obs, b))
-    }
-    /// The dynamics model's prediction of the next observation.
-    fn predict_next(&mut self, obs: &[f32], action: &[f32], next_obs: &mut [f32]);
+    /// The policy's actions in [-1, 1]: `tanh(mu + std * noise)` per row, `noise` standard
+    /// normal, or zero for the deterministic `tanh(mu)`.
+    fn act(&mut self, obs: &[f32], noise: &[f32], actions: &mut [f32]);
+    /// Aggregated critic values of (obs, a) and (obs, b) per row: Replan's test compares two
+    /// actions at one state.
+    fn q_pair(&mut self, obs: &[f32], a: &[f32], b: &[f32], q_a: &mut [f32], q_b: &mut [f32]);
+    /// The dynamics model's predictions of the next observations.
+    fn predict_next(&mut self, obs: &[f32], actions: &[f32], next_obs: &mut [f32]);
 }
 
 /// How the plan is extended after its kept part.
@@ -190,22 +190,99 @@ pub struct NonFinite {
     pub index: usize,
 }
 
-/// Buffers Replan reuses from step to step.
+/// One session's replan within a batch.
+pub struct ReplanJob<'a, R> {
+    pub config: ReplanConfig,
+    /// The observed state.
+    pub state: &'a [f32],
+    /// The step index (within the episode) of `state`; new actions are decided at it.
+    pub step: u64,
+    /// What is left of the last plan (without the action already executed).
+    pub old: PlanView<'a>,
+    /// Receives the new plan.
+    pub new: &'a mut Plan,
+    pub rng: &'a mut R,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Phase {
+    /// Testing old action `checked`.
+    Checking,
+    /// Appending policy actions, `appended` of `wanted` so far.
+    Extending,
+    Done,
+}
+
 #[derive(Clone, Debug)]
+struct JobState {
+    phase: Phase,
+    checked: usize,
+    limit: usize,
+    broke_at: Option<usize>,
+    wanted: usize,
+    appended: usize,
+    /// pi(s) of this round was drawn at the breaking state and opens the extension.
+    have_policy_action: bool,
+    error: Option<NonFinite>,
+}
+
+/// Buffers Replan reuses from step to step; they grow to the largest batch seen.
+#[derive(Clone, Debug, Default)]
 pub struct ReplanScratch {
-    state: Vec<f32>,
-    next: Vec<f32>,
-    policy_action: Vec<f32>,
-    noise: Vec<f32>,
+    obs_dim: usize,
+    act_dim: usize,
+    jobs: Vec<JobState>,
+    /// Per job: current (imagined) state and the policy's action there.
+    states: Vec<f32>,
+    policy_actions: Vec<f32>,
+    /// Gathered rows of this round's network calls, and which job each row belongs to.
+    act_rows: Vec<usize>,
+    act_obs: Vec<f32>,
+    act_noise: Vec<f32>,
+    act_out: Vec<f32>,
+    check_rows: Vec<usize>,
+    check_obs: Vec<f32>,
+    check_policy: Vec<f32>,
+    check_planned: Vec<f32>,
+    q_policy: Vec<f32>,
+    q_planned: Vec<f32>,
+    model_rows: Vec<usize>,
+    model_obs: Vec<f32>,
+    model_actions: Vec<f32>,
+    model_next: Vec<f32>,
 }
 
 impl ReplanScratch {
+    /// Scratch for one session: it fits a batch of one from the start.
     pub fn new(obs_dim: usize, act_dim: usize) -> ReplanScratch {
+        ReplanScratch::with_capacity(obs_dim, act_dim, 1)
+    }
+
+    /// Scratch whose buffers fit batches of up to `jobs` sessions without growing.
+    pub fn with_capacity(obs_dim: usize, act_dim: usize, jobs: usize) -> ReplanScratch {
+        let obs = || Vec::with_capacity(jobs * obs_dim);
+        let act = || Vec::with_capacity(jobs * act_dim);
+        let one = || Vec::with_capacity(jobs);
         ReplanScratch {
-            state: vec![0.0; obs_dim],
-            next: vec![0.0; obs_dim],
-            policy_action: vec![0.0; act_dim],
-            noise: vec![0.0; act_dim],
+            obs_dim,
+            act_dim,
+            jobs: Vec::with_capacity(jobs),
+            states: obs(),
+            policy_actions: act(),
+            act_rows: one(),
+            act_obs: obs(),
+            act_noise: act(),
+            act_out: act(),
+            check_rows: one(),
+            check_obs: obs(),
+            check_policy: act(),
+            check_planned: act(),
+            q_policy: Vec::with_capacity(jobs),
+            q_planned: Vec::with_capacity(jobs),
+            model_rows: one(),
+            model_obs: obs(),
+            model_actions: act(),
+            model_next: obs(),
         }
     }
 }
@@ -214,32 +291,13 @@ fn all_finite(values: &[f32]) -> bool {
     values.iter().all(|v| v.is_finite())
 }
 
-/// Draws the policy's action at `state` into `scratch.policy_action`.
-fn policy_action<N: Networks, R: Rng>(
-    nets: &mut N,
-    sampled: bool,
-    state: &[f32],
-    scratch_noise: &mut [f32],
-    out: &mut [f32],
-    rng: &mut R,
-) {
-    if sampled {
-        for z in scratch_noise.iter_mut() {
-            *z = rng.sample(StandardNormal);
-        }
-        nets.act(state, Some(scratch_noise), out);
-    } else {
-        nets.act(state, None, out);
-    }
-}
-
-/// Algorithm 2. Checks the old plan action by action from the observed `state`, keeping actions
-/// while `Q(s, a) + eps >= Q(s, pi(s))` and rolling the model forward over them, then extends the
-/// plan with policy actions decided at `step`. Writes the new plan into `new`; reads nothing but its
-/// arguments, so the same inputs and rng state give the same plan.
+/// Algorithm 2 for one session: checks the old plan action by action from the observed `state`,
+/// keeping actions while `Q(s, a) + eps >= Q(s, pi(s))` and rolling the model forward over them,
+/// then extends the plan with policy actions decided at `step`. Writes the new plan into `new`;
+/// reads nothing but its arguments, so the same inputs and rng state give the same plan.
 ///
 /// The old plan is checked up to `max_horizon` actions; the new plan never exceeds `max_horizon`
-/// and is never empty.
+/// and is never empty. A non-finite network output is an error; `new` is then unusable.
 #[allow(clippy::too_many_arguments)]
 pub fn replan<N: Networks, R: Rng>(
     nets: &mut N,
@@ -251,83 +309,251 @@ pub fn replan<N: Networks, R: Rng>(
     scratch: &mut ReplanScratch,
     rng: &mut R,
 ) -> Result<ReplanOutcome, NonFinite> {
-    let max_horizon = config.max_horizon.max(1);
-    new.clear();
-    let ReplanScratch {
-        state: s,
-        next,
-        policy_action: pi,
-        noise,
-    } = scratch;
-    s.copy_from_slice(state);
+    let mut jobs = [ReplanJob {
+        config: *config,
+        state,
+        step,
+        old,
+        new,
+        rng,
+    }];
+    let mut results = [Ok(ReplanOutcome {
+        kept: 0,
+        broke_at: None,
+        appended: 0,
+    })];
+    replan_batch(nets, &mut jobs, scratch, &mut results);
+    let [result] = results;
+    result
+}
 
-    let mut broke_at = None;
-    // When the plan breaks, pi(s) at the breaking state is already drawn: it is a valid first new
-    // action (Algorithm 2 line 9 draws from the same distribution at the same state).
-    let mut have_policy_action = false;
-    for j in 0..old.len().min(max_horizon) {
-        let action = old.action(j);
-        policy_action(nets, config.sampled, s, noise, pi, rng);
-        if !all_finite(pi) {
-            return Err(NonFinite {
-                what: "actor",
-                index: j,
-            });
+/// [`replan`] for many sessions of one policy at once, with the same result for each as alone:
+/// every round evaluates the actor, the critics and the model once over all sessions that need
+/// them. `results[i]` receives job i's outcome.
+pub fn replan_batch<N: Networks, R: Rng>(
+    nets: &mut N,
+    jobs: &mut [ReplanJob<'_, R>],
+    scratch: &mut ReplanScratch,
+    results: &mut [Result<ReplanOutcome, NonFinite>],
+) {
+    let (od, ad) = (nets.obs_dim(), nets.act_dim());
+    scratch.obs_dim = od;
+    scratch.act_dim = ad;
+    let n = jobs.len();
+    scratch.jobs.clear();
+    scratch.states.clear();
+    crate::nn::resize(&mut scratch.policy_actions, n * ad);
+    for job in jobs.iter_mut() {
+        job.new.clear();
+        scratch.states.extend_from_slice(job.state);
+        let max_horizon = job.config.max_horizon.max(1);
+        scratch.jobs.push(JobState {
+            phase: Phase::Checking,
+            checked: 0,
+            limit: job.old.len().min(max_horizon),
+            broke_at: None,
+            wanted: 0,
+            appended: 0,
+            have_policy_action: false,
+            error: None,
+        });
+    }
+    loop {
+        // Jobs done checking start extending: wanted is known once `kept` is.
+        for (job, st) in jobs.iter().zip(scratch.jobs.iter_mut()) {
+            if st.phase == Phase::Checking && st.checked >= st.limit {
+                start_extending(job, st);
+            }
         }
-        let (q_policy, q_planned) = nets.q_pair(s, pi, action);
-        if !q_policy.is_finite() || !q_planned.is_finite() {
-            return Err(NonFinite {
-                what: "critic",
-                index: j,
-            });
-        }
-        if q_planned + config.epsilon < q_policy {
-            broke_at = Some(j);
-            have_policy_action = true;
+        if scratch.jobs.iter().all(|st| st.phase == Phase::Done) {
             break;
         }
-        nets.predict_next(s, action, next);
-        if !all_finite(next) {
-            return Err(NonFinite {
-                what: "model",
-                index: j,
-            });
-        }
-        new.push(action, next, old.decided_at(j));
-        std::mem::swap(s, next);
+        draw_policy_actions(nets, jobs, scratch);
+        check_planned_actions(nets, jobs, scratch);
+        roll_model(nets, jobs, scratch);
     }
-    let kept = new.len();
+    for (i, st) in scratch.jobs.iter().enumerate() {
+        let kept = jobs[i].new.len() - st.appended;
+        results[i] = match st.error.clone() {
+            Some(e) => Err(e),
+            None => Ok(ReplanOutcome {
+                kept,
+                broke_at: st.broke_at,
+                appended: st.appended,
+            }),
+        };
+    }
+}
 
-    let wanted = match config.growth {
+fn start_extending<R>(job: &ReplanJob<'_, R>, st: &mut JobState) {
+    let kept = job.new.len();
+    let max_horizon = job.config.max_horizon.max(1);
+    let wanted = match job.config.growth {
         Growth::Grow(k) => k.max(1),
         Growth::Fixed(n) => n.max(1).saturating_sub(kept),
     };
-    let appended = wanted.min(max_horizon - kept);
-    for m in 0..appended {
-        if !(m == 0 && have_policy_action) {
-            policy_action(nets, config.sampled, s, noise, pi, rng);
-            if !all_finite(pi) {
-                return Err(NonFinite {
-                    what: "actor",
-                    index: kept + m,
-                });
+    st.wanted = wanted.min(max_horizon - kept);
+    st.phase = if st.wanted == 0 {
+        Phase::Done
+    } else {
+        Phase::Extending
+    };
+}
+
+fn fail(st: &mut JobState, what: &'static str, index: usize) {
+    st.error = Some(NonFinite { what, index });
+    st.phase = Phase::Done;
+}
+
+/// pi(s) for every job that needs it this round, in one actor call.
+fn draw_policy_actions<N: Networks, R: Rng>(
+    nets: &mut N,
+    jobs: &mut [ReplanJob<'_, R>],
+    s: &mut ReplanScratch,
+) {
+    let (od, ad) = (s.obs_dim, s.act_dim);
+    s.act_rows.clear();
+    s.act_obs.clear();
+    s.act_noise.clear();
+    for (i, (job, st)) in jobs.iter_mut().zip(&s.jobs).enumerate() {
+        let needs = match st.phase {
+            Phase::Checking => true,
+            Phase::Extending => !(st.appended == 0 && st.have_policy_action),
+            Phase::Done => false,
+        };
+        if !needs {
+            continue;
+        }
+        s.act_rows.push(i);
+        s.act_obs.extend_from_slice(&s.states[i * od..(i + 1) * od]);
+        for _ in 0..ad {
+            // The rng is drawn exactly as often, and in the same order, as one replan alone.
+            let z = if job.config.sampled {
+                job.rng.sample(StandardNormal)
+            } else {
+                0.0
+            };
+            s.act_noise.push(z);
+        }
+    }
+    if s.act_rows.is_empty() {
+        return;
+    }
+    crate::nn::resize(&mut s.act_out, s.act_rows.len() * ad);
+    nets.act(&s.act_obs, &s.act_noise, &mut s.act_out);
+    for (r, &i) in s.act_rows.iter().enumerate() {
+        let action = &s.act_out[r * ad..(r + 1) * ad];
+        let st = &mut s.jobs[i];
+        if !all_finite(action) {
+            let index = jobs[i].new.len();
+            fail(st, "actor", index);
+            continue;
+        }
+        s.policy_actions[i * ad..(i + 1) * ad].copy_from_slice(action);
+    }
+}
+
+/// The plan-following test for every job still checking, in one critic call.
+fn check_planned_actions<N: Networks, R: Rng>(
+    nets: &mut N,
+    jobs: &mut [ReplanJob<'_, R>],
+    s: &mut ReplanScratch,
+) {
+    let (od, ad) = (s.obs_dim, s.act_dim);
+    s.check_rows.clear();
+    s.check_obs.clear();
+    s.check_policy.clear();
+    s.check_planned.clear();
+    for (i, (job, st)) in jobs.iter().zip(&s.jobs).enumerate() {
+        if st.phase != Phase::Checking {
+            continue;
+        }
+        s.check_rows.push(i);
+        s.check_obs
+            .extend_from_slice(&s.states[i * od..(i + 1) * od]);
+        s.check_policy
+            .extend_from_slice(&s.policy_actions[i * ad..(i + 1) * ad]);
+        s.check_planned
+            .extend_from_slice(job.old.action(st.checked));
+    }
+    if s.check_rows.is_empty() {
+        return;
+    }
+    let rows = s.check_rows.len();
+    crate::nn::resize(&mut s.q_policy, rows);
+    crate::nn::resize(&mut s.q_planned, rows);
+    nets.q_pair(
+        &s.check_obs,
+        &s.check_policy,
+        &s.check_planned,
+        &mut s.q_policy,
+        &mut s.q_planned,
+    );
+    for (r, &i) in s.check_rows.iter().enumerate() {
+        let (q_policy, q_planned) = (s.q_policy[r], s.q_planned[r]);
+        let st = &mut s.jobs[i];
+        if !q_policy.is_finite() || !q_planned.is_finite() {
+            fail(st, "critic", st.checked);
+            continue;
+        }
+        if q_planned + jobs[i].config.epsilon < q_policy {
+            st.broke_at = Some(st.checked);
+            st.have_policy_action = true;
+            start_extending(&jobs[i], st);
+        }
+    }
+}
+
+/// One model step for every job that keeps an old action or appends a policy action.
+fn roll_model<N: Networks, R: Rng>(
+    nets: &mut N,
+    jobs: &mut [ReplanJob<'_, R>],
+    s: &mut ReplanScratch,
+) {
+    let (od, ad) = (s.obs_dim, s.act_dim);
+    s.model_rows.clear();
+    s.model_obs.clear();
+    s.model_actions.clear();
+    for (i, (job, st)) in jobs.iter().zip(&s.jobs).enumerate() {
+        let action = match st.phase {
+            Phase::Checking => job.old.action(st.checked),
+            Phase::Extending => &s.policy_actions[i * ad..(i + 1) * ad],
+            Phase::Done => continue,
+        };
+        s.model_rows.push(i);
+        s.model_obs
+            .extend_from_slice(&s.states[i * od..(i + 1) * od]);
+        s.model_actions.extend_from_slice(action);
+    }
+    if s.model_rows.is_empty() {
+        return;
+    }
+    crate::nn::resize(&mut s.model_next, s.model_rows.len() * od);
+    nets.predict_next(&s.model_obs, &s.model_actions, &mut s.model_next);
+    for (r, &i) in s.model_rows.iter().enumerate() {
+        let next = &s.model_next[r * od..(r + 1) * od];
+        let action = &s.model_actions[r * ad..(r + 1) * ad];
+        let job = &mut jobs[i];
+        let st = &mut s.jobs[i];
+        if !all_finite(next) {
+            fail(st, "model", job.new.len());
+            continue;
+        }
+        match st.phase {
+            Phase::Checking => {
+                job.new.push(action, next, job.old.decided_at(st.checked));
+                st.checked += 1;
+            }
+            _ => {
+                job.new.push(action, next, job.step);
+                st.appended += 1;
+                if st.appended == st.wanted {
+                    st.phase = Phase::Done;
+                }
             }
         }
-        nets.predict_next(s, pi, next);
-        if !all_finite(next) {
-            return Err(NonFinite {
-                what: "model",
-                index: kept + m,
-            });
-        }
-        new.push(pi, next, step);
-        std::mem::swap(s, next);
+        s.states[i * od..(i + 1) * od].copy_from_slice(next);
     }
-    Ok(ReplanOutcome {
-        kept,
-        broke_at,
-        appended,
-    })
 }
 
 #[cfg(test)]

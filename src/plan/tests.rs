@@ -43,22 +43,29 @@ impl Networks for ClosedForm {
     fn act_dim(&self) -> usize {
         ACT
     }
-    fn act(&mut self, obs: &[f32], noise: Option<&[f32]>, action: &mut [f32]) {
-        let u = (0.8 * obs[0] - 0.5 * obs[1]) + noise.map_or(0.0, |z| 0.3 * z[0]);
-        action[0] = u.tanh();
+    fn act(&mut self, obs: &[f32], noise: &[f32], actions: &mut [f32]) {
+        for (k, action) in actions.iter_mut().enumerate() {
+            let o = &obs[k * OBS..(k + 1) * OBS];
+            *action = ((0.8 * o[0] - 0.5 * o[1]) + 0.3 * noise[k]).tanh();
+        }
     }
-    fn q(&mut self, obs: &[f32], action: &[f32]) -> f32 {
-        let d = action[0] - Self::mean_action(obs);
-        -d * d
+    fn q_pair(&mut self, obs: &[f32], a: &[f32], b: &[f32], q_a: &mut [f32], q_b: &mut [f32]) {
+        for k in 0..q_a.len() {
+            let mean = Self::mean_action(&obs[k * OBS..(k + 1) * OBS]);
+            q_a[k] = -(a[k] - mean) * (a[k] - mean);
+            q_b[k] = -(b[k] - mean) * (b[k] - mean);
+        }
     }
-    fn predict_next(&mut self, obs: &[f32], action: &[f32], next_obs: &mut [f32]) {
-        let n = env_step(obs, action);
-        next_obs[0] = if self.broken_model {
-            f32::NAN
-        } else {
-            n[0] + self.model_bias
-        };
-        next_obs[1] = n[1] + self.model_bias;
+    fn predict_next(&mut self, obs: &[f32], actions: &[f32], next_obs: &mut [f32]) {
+        for k in 0..actions.len() {
+            let n = env_step(&obs[k * OBS..(k + 1) * OBS], &actions[k..k + 1]);
+            next_obs[k * OBS] = if self.broken_model {
+                f32::NAN
+            } else {
+                n[0] + self.model_bias
+            };
+            next_obs[k * OBS + 1] = n[1] + self.model_bias;
+        }
     }
 }
 
@@ -366,4 +373,98 @@ fn a_non_finite_model_is_an_error_not_a_plan() {
             index: 0
         }
     );
+}
+
+#[test]
+fn a_batch_gives_each_session_what_it_gets_alone() {
+    // Sessions with different configs, old plans, seeds and a planted break, replanned alone and
+    // together.
+    let configs = [
+        ReplanConfig::default(),
+        huge_eps(Growth::Grow(3), 7),
+        ReplanConfig {
+            epsilon: 0.01,
+            sampled: true,
+            ..ReplanConfig::default()
+        },
+        huge_eps(Growth::Fixed(5), 5),
+        ReplanConfig {
+            epsilon: 0.001,
+            growth: Growth::Fixed(9),
+            max_horizon: 9,
+            sampled: false,
+        },
+    ];
+    let states: Vec<[f32; OBS]> = (0..configs.len())
+        .map(|i| [0.3 * i as f32 - 0.5, 0.2 - 0.1 * i as f32])
+        .collect();
+    let olds: Vec<Plan> = (0..configs.len())
+        .map(|i| {
+            let mut old = Plan::with_capacity(OBS, ACT, 16);
+            let mut s = states[i];
+            for j in 0..(2 * i + 1) {
+                let bad = if j == 2 { 0.6 } else { 0.0 };
+                let a = [(ClosedForm::mean_action(&s) - bad).max(-1.0)];
+                let next = env_step(&s, &a);
+                old.push(&a, &next, j as u64);
+                s = next;
+            }
+            old
+        })
+        .collect();
+    let mut nets = ClosedForm {
+        model_bias: 0.01,
+        broken_model: false,
+    };
+    let alone: Vec<(Result<ReplanOutcome, NonFinite>, Plan)> = (0..configs.len())
+        .map(|i| {
+            let mut new = Plan::with_capacity(OBS, ACT, 16);
+            let mut rng = ChaCha8Rng::seed_from_u64(i as u64);
+            let r = replan(
+                &mut nets,
+                &configs[i],
+                &states[i],
+                9,
+                olds[i].tail(0),
+                &mut new,
+                &mut ReplanScratch::new(OBS, ACT),
+                &mut rng,
+            );
+            (r, new)
+        })
+        .collect();
+    let mut news: Vec<Plan> = (0..configs.len())
+        .map(|_| Plan::with_capacity(OBS, ACT, 16))
+        .collect();
+    let mut rngs: Vec<ChaCha8Rng> = (0..configs.len())
+        .map(|i| ChaCha8Rng::seed_from_u64(i as u64))
+        .collect();
+    let mut jobs: Vec<ReplanJob<'_, ChaCha8Rng>> = news
+        .iter_mut()
+        .zip(rngs.iter_mut())
+        .enumerate()
+        .map(|(i, (new, rng))| ReplanJob {
+            config: configs[i],
+            state: &states[i],
+            step: 9,
+            old: olds[i].tail(0),
+            new,
+            rng,
+        })
+        .collect();
+    let mut results = vec![Err(NonFinite { what: "", index: 0 }); configs.len()];
+    replan_batch(
+        &mut nets,
+        &mut jobs,
+        &mut ReplanScratch::new(OBS, ACT),
+        &mut results,
+    );
+    drop(jobs);
+    let mut saw_break = false;
+    for i in 0..configs.len() {
+        assert_eq!(results[i], alone[i].0, "session {i}");
+        assert_eq!(news[i], alone[i].1, "session {i}");
+        saw_break |= results[i].as_ref().unwrap().broke_at.is_some();
+    }
+    assert!(saw_break);
 }

@@ -3,12 +3,11 @@
 
 use std::sync::Arc;
 
-use nalgebra::{DMatrix, DVector, DVectorView};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use crate::bundle::{Manifest, Normalization, QAggregation};
-use crate::nn::{Activation, BatchScratch, Dense, Mlp, MlpScratch};
+use crate::nn::{Activation, Dense, Mlp, MlpScratch, resize};
 use crate::plan::Networks;
 
 /// SB3 clamps log_std to this range.
@@ -135,37 +134,6 @@ impl Policy {
             self.model.as_ref().map_or(0, |m| m.net.flops()),
         )
     }
-
-    /// Deterministic actions (tanh(mu)) of many states: `obs` is [obs_dim, batch].
-    pub fn mean_actions_batch(
-        &self,
-        obs: &DMatrix<f32>,
-        scratch: &mut BatchScratch,
-    ) -> DMatrix<f32> {
-        let latent = self.actor.trunk.forward_batch(obs, scratch);
-        let mut mu = DMatrix::zeros(self.act_dim(), obs.ncols());
-        for mut column in mu.column_iter_mut() {
-            column.copy_from(&self.actor.mu.bias);
-        }
-        mu.gemm(1.0, &self.actor.mu.weight, latent, 1.0);
-        mu.apply(|v| *v = v.tanh());
-        mu
-    }
-
-    /// Aggregated Q of many (state, action) pairs: `obs_actions` is [obs_dim + act_dim, batch].
-    pub fn q_batch(&self, obs_actions: &DMatrix<f32>, scratch: &mut BatchScratch) -> DVector<f32> {
-        let mut q = DVector::zeros(obs_actions.ncols());
-        for (k, critic) in self.critics.iter().enumerate() {
-            let out = critic.forward_batch(obs_actions, scratch);
-            for (j, v) in out.row(0).iter().enumerate() {
-                q[j] = aggregate(self.manifest.q_aggregation, k, q[j], *v);
-            }
-        }
-        if self.manifest.q_aggregation == QAggregation::Mean {
-            q /= self.critics.len() as f32;
-        }
-        q
-    }
 }
 
 /// Folds critic `k`'s value into the running aggregate (a sum for the mean).
@@ -178,28 +146,45 @@ fn aggregate(how: QAggregation, k: usize, acc: f32, value: f32) -> f32 {
     }
 }
 
-/// Runs a policy's networks for one session: owns every buffer a step needs.
+/// Runs a policy's networks for Replan, over batches of any size: owns every buffer a step
+/// needs (one per session, or one per batch worker).
 #[derive(Clone, Debug)]
 pub struct Evaluator {
     policy: Arc<Policy>,
     actor: MlpScratch,
-    mu: DVector<f32>,
-    log_std: DVector<f32>,
+    mu: Vec<f32>,
+    log_std: Vec<f32>,
+    /// Critic inputs: n rows of (obs, a) then n rows of (obs, b).
+    critic_input: Vec<f32>,
     critics: Vec<MlpScratch>,
-    /// Second state of each critic's pair forward.
-    critics_pair: Vec<MlpScratch>,
-    model: Option<MlpScratch>,
+    model_input: Vec<f32>,
+    model: MlpScratch,
 }
 
 impl Evaluator {
+    /// An evaluator for one session: its buffers fit a batch of one from the start.
     pub fn new(policy: Arc<Policy>) -> Evaluator {
+        Evaluator::with_capacity(policy, 1)
+    }
+
+    /// An evaluator whose buffers fit batches of up to `rows` states without growing.
+    pub fn with_capacity(policy: Arc<Policy>, rows: usize) -> Evaluator {
+        let (od, ad) = (policy.obs_dim(), policy.act_dim());
         Evaluator {
-            actor: policy.actor.trunk.scratch(),
-            mu: DVector::zeros(policy.act_dim()),
-            log_std: DVector::zeros(policy.act_dim()),
-            critics: policy.critics.iter().map(Mlp::scratch).collect(),
-            critics_pair: policy.critics.iter().map(Mlp::scratch).collect(),
-            model: policy.model.as_ref().map(|m| m.net.scratch()),
+            actor: policy.actor.trunk.scratch_for(rows),
+            mu: Vec::with_capacity(rows * ad),
+            log_std: Vec::with_capacity(rows * ad),
+            critic_input: Vec::with_capacity(2 * rows * (od + ad)),
+            critics: policy
+                .critics
+                .iter()
+                .map(|c| c.scratch_for(2 * rows))
+                .collect(),
+            model_input: Vec::with_capacity(rows * (od + ad)),
+            model: policy
+                .model
+                .as_ref()
+                .map_or_else(MlpScratch::default, |m| m.net.scratch_for(rows)),
             policy,
         }
     }
@@ -216,91 +201,80 @@ impl Networks for Evaluator {
         self.policy.act_dim()
     }
 
-    fn act(&mut self, obs: &[f32], noise: Option<&[f32]>, action: &mut [f32]) {
+    fn act(&mut self, obs: &[f32], noise: &[f32], actions: &mut [f32]) {
         let actor = &self.policy.actor;
-        let latent = actor.trunk.forward(obs, &mut self.actor);
-        let latent = DVectorView::from_slice(latent, latent.len());
-        self.mu.copy_from(&actor.mu.bias);
-        self.mu.gemv(1.0, &actor.mu.weight, &latent, 1.0);
-        match noise {
-            None => {
-                for (a, m) in action.iter_mut().zip(self.mu.iter()) {
-                    *a = m.tanh();
-                }
-            }
-            Some(noise) => {
-                self.log_std.copy_from(&actor.log_std.bias);
-                self.log_std.gemv(1.0, &actor.log_std.weight, &latent, 1.0);
-                for i in 0..action.len() {
-                    let std = self.log_std[i].clamp(LOG_STD_MIN, LOG_STD_MAX).exp();
-                    action[i] = (self.mu[i] + std * noise[i]).tanh();
-                }
-            }
+        let n = obs.len() / self.policy.obs_dim();
+        let ad = self.policy.act_dim();
+        let latent = actor.trunk.forward_rows(obs, &mut self.actor);
+        resize(&mut self.mu, n * ad);
+        resize(&mut self.log_std, n * ad);
+        actor.mu.forward_rows(latent, &mut self.mu);
+        actor.log_std.forward_rows(latent, &mut self.log_std);
+        for i in 0..n * ad {
+            let std = self.log_std[i].clamp(LOG_STD_MIN, LOG_STD_MAX).exp();
+            actions[i] = (self.mu[i] + std * noise[i]).tanh();
         }
     }
 
-    fn q(&mut self, obs: &[f32], action: &[f32]) -> f32 {
+    fn q_pair(&mut self, obs: &[f32], a: &[f32], b: &[f32], q_a: &mut [f32], q_b: &mut [f32]) {
+        let (od, ad) = (self.policy.obs_dim(), self.policy.act_dim());
+        let n = obs.len() / od;
+        self.critic_input.clear();
+        for actions in [a, b] {
+            for k in 0..n {
+                self.critic_input
+                    .extend_from_slice(&obs[k * od..(k + 1) * od]);
+                self.critic_input
+                    .extend_from_slice(&actions[k * ad..(k + 1) * ad]);
+            }
+        }
         let how = self.policy.manifest.q_aggregation;
-        let mut q = 0.0;
-        for (k, (critic, scratch)) in self
+        for (c, (critic, scratch)) in self
             .policy
             .critics
             .iter()
             .zip(&mut self.critics)
             .enumerate()
         {
-            let input = critic.input_buffer(scratch);
-            input[..obs.len()].copy_from_slice(obs);
-            input[obs.len()..].copy_from_slice(action);
-            q = aggregate(how, k, q, critic.forward_scratch_input(scratch)[0]);
+            let q = critic.forward_rows(&self.critic_input, scratch);
+            for k in 0..n {
+                q_a[k] = aggregate(how, c, q_a[k], q[k]);
+                q_b[k] = aggregate(how, c, q_b[k], q[n + k]);
+            }
         }
-        match how {
-            QAggregation::Min => q,
-            QAggregation::Mean => q / self.policy.critics.len() as f32,
+        if how == QAggregation::Mean {
+            let count = self.policy.critics.len() as f32;
+            q_a.iter_mut()
+                .chain(q_b.iter_mut())
+                .for_each(|q| *q /= count);
         }
     }
 
-    fn q_pair(&mut self, obs: &[f32], a: &[f32], b: &[f32]) -> (f32, f32) {
-        let how = self.policy.manifest.q_aggregation;
-        let (mut qa, mut qb) = (0.0, 0.0);
-        let scratches = self.critics.iter_mut().zip(&mut self.critics_pair);
-        for (k, (critic, (sa, sb))) in self.policy.critics.iter().zip(scratches).enumerate() {
-            for (scratch, action) in [(&mut *sa, a), (&mut *sb, b)] {
-                let input = critic.input_buffer(scratch);
-                input[..obs.len()].copy_from_slice(obs);
-                input[obs.len()..].copy_from_slice(action);
-            }
-            critic.forward_pair_scratch_inputs(sa, sb);
-            qa = aggregate(how, k, qa, sa.output()[0]);
-            qb = aggregate(how, k, qb, sb.output()[0]);
-        }
-        match how {
-            QAggregation::Min => (qa, qb),
-            QAggregation::Mean => {
-                let n = self.policy.critics.len() as f32;
-                (qa / n, qb / n)
-            }
-        }
-    }
-
-    fn predict_next(&mut self, obs: &[f32], action: &[f32], next_obs: &mut [f32]) {
+    fn predict_next(&mut self, obs: &[f32], actions: &[f32], next_obs: &mut [f32]) {
         // Without a model there is no prediction: NaN makes Replan refuse the plan (NonFinite).
-        let (Some(model), Some(scratch)) = (&self.policy.model, &mut self.model) else {
+        let Some(model) = &self.policy.model else {
             next_obs.fill(f32::NAN);
             return;
         };
-        let n = &model.normalization;
-        let input = model.net.input_buffer(scratch);
-        let (input_obs, input_act) = input.split_at_mut(obs.len());
-        for i in 0..obs.len() {
-            input_obs[i] = (obs[i] - n.obs_mean[i]) / n.obs_std[i];
+        let (od, ad) = (self.policy.obs_dim(), self.policy.act_dim());
+        let n = obs.len() / od;
+        let norm = &model.normalization;
+        self.model_input.clear();
+        for k in 0..n {
+            let (o, a) = (&obs[k * od..(k + 1) * od], &actions[k * ad..(k + 1) * ad]);
+            let obs_part = o.iter().zip(&norm.obs_mean).zip(&norm.obs_std);
+            self.model_input
+                .extend(obs_part.map(|((v, mean), std)| (v - mean) / std));
+            let act_part = a.iter().zip(&norm.action_mean).zip(&norm.action_std);
+            self.model_input
+                .extend(act_part.map(|((v, mean), std)| (v - mean) / std));
         }
-        for i in 0..action.len() {
-            input_act[i] = (action[i] - n.action_mean[i]) / n.action_std[i];
-        }
-        let delta = model.net.forward_scratch_input(scratch);
-        for i in 0..obs.len() {
-            next_obs[i] = obs[i] + delta[i] * n.delta_std[i] + n.delta_mean[i];
+        let delta = model.net.forward_rows(&self.model_input, &mut self.model);
+        for k in 0..n {
+            for i in 0..od {
+                let d = delta[k * od + i] * norm.delta_std[i] + norm.delta_mean[i];
+                next_obs[k * od + i] = obs[k * od + i] + d;
+            }
         }
     }
 }
@@ -377,28 +351,30 @@ mod tests {
             3,
         ));
         let mut eval = Evaluator::new(policy.clone());
-        let states: Vec<Vec<f32>> = (0..6)
-            .map(|k| (0..5).map(|i| ((k * 7 + i) as f32).sin()).collect())
-            .collect();
-        let mut obs = DMatrix::zeros(5, 6);
-        for (k, s) in states.iter().enumerate() {
-            obs.column_mut(k).copy_from_slice(s);
-        }
-        let mut scratch = BatchScratch::default();
-        let actions = policy.mean_actions_batch(&obs, &mut scratch);
-        let mut obs_actions = DMatrix::zeros(7, 6);
-        obs_actions.rows_mut(0, 5).copy_from(&obs);
-        obs_actions.rows_mut(5, 2).copy_from(&actions);
-        let q = policy.q_batch(&obs_actions, &mut scratch);
-        for (k, s) in states.iter().enumerate() {
+        let n = 11;
+        let obs: Vec<f32> = (0..n * 5).map(|i| (i as f32).sin()).collect();
+        let noise: Vec<f32> = (0..n * 2).map(|i| (i as f32 * 0.7).cos()).collect();
+        let other: Vec<f32> = (0..n * 2).map(|i| (i as f32 * 0.3).sin()).collect();
+        let mut actions = vec![0.0; n * 2];
+        eval.act(&obs, &noise, &mut actions);
+        let (mut qa, mut qb) = (vec![0.0; n], vec![0.0; n]);
+        eval.q_pair(&obs, &actions, &other, &mut qa, &mut qb);
+        let mut next = vec![0.0; n * 5];
+        eval.predict_next(&obs, &actions, &mut next);
+        for k in 0..n {
+            let (o, z) = (&obs[k * 5..k * 5 + 5], &noise[k * 2..k * 2 + 2]);
             let mut a = [0.0f32; 2];
-            eval.act(s, None, &mut a);
-            assert!((a[0] - actions[(0, k)]).abs() < 1e-5 && (a[1] - actions[(1, k)]).abs() < 1e-5);
-            assert!((eval.q(s, &a) - q[k]).abs() < 1e-4);
-            let other = [0.3f32, -0.6];
-            let (qa, qb) = eval.q_pair(s, &a, &other);
-            assert!((qa - q[k]).abs() < 1e-4);
-            assert!((qb - eval.q(s, &other)).abs() < 1e-4);
+            eval.act(o, z, &mut a);
+            assert_eq!(a, actions[k * 2..k * 2 + 2]);
+            let (mut sa, mut sb) = ([0.0f32], [0.0f32]);
+            eval.q_pair(o, &a, &other[k * 2..k * 2 + 2], &mut sa, &mut sb);
+            assert_eq!((sa[0], sb[0]), (qa[k], qb[k]));
+            // Q(s, a) at the same action in both slots is bitwise equal (the eps = 0 test).
+            eval.q_pair(o, &a, &a, &mut sa, &mut sb);
+            assert_eq!(sa, sb);
+            let mut s_next = [0.0f32; 5];
+            eval.predict_next(o, &a, &mut s_next);
+            assert_eq!(s_next, next[k * 5..k * 5 + 5]);
         }
     }
 
