@@ -106,8 +106,17 @@ fn check_response(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn list_open_stream_unary_plan_and_watch() {
+    list_open_stream_unary_plan_and_watch_with(&[]).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn list_open_stream_unary_plan_and_watch_without_batching() {
+    list_open_stream_unary_plan_and_watch_with(&["--batch-max", "0"]).await;
+}
+
+async fn list_open_stream_unary_plan_and_watch_with(args: &[&str]) {
     let dir = bundle_dir();
-    let server = Server::start(dir.path(), &[]);
+    let server = Server::start(dir.path(), args);
     server.wait_serving().await;
     let mut client = server.client().await;
 
@@ -768,4 +777,115 @@ async fn bad_bundles_are_skipped_with_their_reason_or_fatal_with_strict() {
         log.contains("broken.safetensors") && log.contains("--strict"),
         "{log}"
     );
+}
+
+/// Runs `sessions` concurrent sessions of `steps` unary steps on observations that follow each
+/// session's own forecast; returns every response, per session.
+async fn run_sessions(
+    server: &Server,
+    sessions: usize,
+    steps: usize,
+) -> Vec<Vec<proto::StepResponse>> {
+    let mut tasks = Vec::new();
+    for k in 0..sessions {
+        let mut client = server.client().await;
+        tasks.push(tokio::spawn(async move {
+            let session = open(
+                &mut client,
+                options(Some(Tolerance::EpsilonCoef(0.0002)), None, 12),
+            )
+            .await;
+            let mut obs = vec![0.1 * k as f32, -0.2, 0.3];
+            let mut out = Vec::new();
+            for i in 0..steps {
+                let r = client
+                    .step(step_request(&session, obs.clone(), i == 0))
+                    .await
+                    .unwrap()
+                    .into_inner();
+                obs = r.forecast[0]
+                    .predicted_observation
+                    .iter()
+                    .enumerate()
+                    .map(|(j, v)| v + 0.01 * ((i + j) % 5) as f32)
+                    .collect();
+                out.push(r);
+            }
+            out
+        }));
+    }
+    let mut all = Vec::new();
+    for task in tasks {
+        all.push(task.await.unwrap());
+    }
+    all
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cross_session_batching_gives_the_answers_of_one_at_a_time() {
+    let dir = bundle_dir();
+    // A window makes the worker gather concurrent sessions into real batches.
+    let batched = Server::start(dir.path(), &["--batch-window", "2ms", "--batch-max", "16"]);
+    let inline = Server::start(dir.path(), &["--batch-max", "0"]);
+    batched.wait_serving().await;
+    inline.wait_serving().await;
+    let (a, b) = tokio::join!(run_sessions(&batched, 8, 40), run_sessions(&inline, 8, 40));
+    assert_eq!(a, b);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_batch_queue_is_answered_with_resource_exhausted() {
+    let dir = bundle_dir();
+    let server = Server::start(
+        dir.path(),
+        &[
+            "--batch-queue",
+            "1",
+            "--batch-max",
+            "1",
+            "--batch-window",
+            "20ms",
+            "--max-horizon-limit",
+            "256",
+        ],
+    );
+    server.wait_serving().await;
+    let mut client = server.client().await;
+    let mut ids = Vec::new();
+    for _ in 0..32 {
+        ids.push(
+            open(
+                &mut client,
+                options(Some(Tolerance::Epsilon(1e9)), Some(Growth::Fixed(200)), 200),
+            )
+            .await,
+        );
+    }
+    let mut tasks = Vec::new();
+    for id in &ids {
+        let mut client = client.clone();
+        let id = id.clone();
+        tasks.push(tokio::spawn(async move {
+            client.step(step_request(&id, vec![0.0; 3], false)).await
+        }));
+    }
+    let (mut ok, mut refused) = (0, 0);
+    for task in tasks {
+        match task.await.unwrap() {
+            Ok(_) => ok += 1,
+            Err(status) => {
+                assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");
+                assert!(status.message().contains("overloaded"), "{status:?}");
+                refused += 1;
+            }
+        }
+    }
+    assert!(ok >= 1 && refused >= 1, "ok {ok} refused {refused}");
+    // Refused steps lost nothing: every session steps normally afterwards.
+    for id in &ids {
+        client
+            .step(step_request(id, vec![0.0; 3], false))
+            .await
+            .unwrap();
+    }
 }

@@ -7,6 +7,8 @@ use std::time::Duration;
 use anyhow::Context;
 use serde::Deserialize;
 
+use super::batch::BatchConfig;
+
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum LogFormat {
@@ -47,6 +49,21 @@ pub struct ServeArgs {
     /// Largest max_horizon, grow k or fixed n a session may ask for [default: 256].
     #[arg(long)]
     pub max_horizon_limit: Option<usize>,
+    /// Most steps replanned together across sessions; 0 turns batching off (each step is
+    /// replanned in its request handler) [default: 64].
+    #[arg(long)]
+    pub batch_max: Option<usize>,
+    /// How long a batch worker waits for more steps after the first, e.g. "200us"; 0 takes only
+    /// what is already queued, adding no delay [default: 0s].
+    #[arg(long, value_parser = humantime::parse_duration)]
+    pub batch_window: Option<Duration>,
+    /// Steps that may wait for a batch worker; more are refused with RESOURCE_EXHAUSTED
+    /// [default: 4096].
+    #[arg(long)]
+    pub batch_queue: Option<usize>,
+    /// Batch worker threads [default: 1].
+    #[arg(long)]
+    pub batch_workers: Option<usize>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -61,6 +78,10 @@ struct FileConfig {
     log_format: Option<LogFormat>,
     strict: Option<bool>,
     max_horizon_limit: Option<usize>,
+    batch_max: Option<usize>,
+    batch_window: Option<String>,
+    batch_queue: Option<usize>,
+    batch_workers: Option<usize>,
 }
 
 /// The settings in force.
@@ -75,6 +96,8 @@ pub struct ServeConfig {
     pub log_format: LogFormat,
     pub strict: bool,
     pub max_horizon_limit: usize,
+    /// Cross-session batching; None when off.
+    pub batch: Option<BatchConfig>,
 }
 
 /// The repository's bundle directory, which the training issues fill.
@@ -94,6 +117,12 @@ impl Default for ServeConfig {
             log_format: LogFormat::Text,
             strict: false,
             max_horizon_limit: 256,
+            batch: Some(BatchConfig {
+                max_batch: 64,
+                window: Duration::ZERO,
+                queue: 4096,
+                workers: 1,
+            }),
         }
     }
 }
@@ -143,6 +172,24 @@ impl ServeConfig {
                 .max_horizon_limit
                 .or(file.max_horizon_limit)
                 .unwrap_or(d.max_horizon_limit),
+            batch: None,
+        };
+        let db = d.batch.expect("batching is on by default");
+        let max_batch = args.batch_max.or(file.batch_max).unwrap_or(db.max_batch);
+        let config = ServeConfig {
+            batch: (max_batch > 0).then_some(BatchConfig {
+                max_batch,
+                window: args
+                    .batch_window
+                    .or(duration("batch_window", file.batch_window)?)
+                    .unwrap_or(db.window),
+                queue: args.batch_queue.or(file.batch_queue).unwrap_or(db.queue),
+                workers: args
+                    .batch_workers
+                    .or(file.batch_workers)
+                    .unwrap_or(db.workers),
+            }),
+            ..config
         };
         anyhow::ensure!(config.max_sessions > 0, "max_sessions must be at least 1");
         anyhow::ensure!(

@@ -1,5 +1,6 @@
 //! `prac serve`: the gRPC daemon.
 
+pub mod batch;
 pub mod config;
 pub mod health;
 pub mod registry;
@@ -100,6 +101,7 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
         max_horizon_limit: config.max_horizon_limit,
         max_message_bytes: config.max_message_bytes,
         shutdown: shutdown.clone(),
+        batcher: config.batch.map(batch::Batcher::start),
     });
     let prac = PracServer::new(PracService {
         state: state.clone(),

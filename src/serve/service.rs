@@ -9,6 +9,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status, Streaming};
 
+use super::batch::Batcher;
 use super::registry::Registry;
 use super::session::{Session, SessionError, SessionSettings, Sessions, StepError, new_session_id};
 use crate::policy::Policy;
@@ -24,6 +25,8 @@ pub struct ServerState {
     pub max_message_bytes: usize,
     /// Cancelled at shutdown: open streams end with UNAVAILABLE.
     pub shutdown: CancellationToken,
+    /// Cross-session batching; None replans each step in its request handler.
+    pub batcher: Option<Batcher>,
 }
 
 impl From<SessionError> for Status {
@@ -97,8 +100,11 @@ impl ServerState {
             .ok_or_else(|| Status::unavailable("the server is still loading its bundles; retry"))
     }
 
-    fn step(&self, request: &proto::StepRequest) -> Result<proto::StepResponse, Status> {
+    async fn step(&self, request: proto::StepRequest) -> Result<proto::StepResponse, Status> {
         let slot = self.sessions.get(&request.session_id)?;
+        if let Some(batcher) = &self.batcher {
+            return batcher.step(slot, request).await;
+        }
         let mut session = slot.lock();
         let report = session.step(&request.observation, request.new_episode)?;
         Ok(session.response(&report))
@@ -182,7 +188,10 @@ impl Prac for PracService {
         &self,
         request: Request<proto::StepRequest>,
     ) -> Result<Response<proto::StepResponse>, Status> {
-        self.state.step(request.get_ref()).map(Response::new)
+        self.state
+            .step(request.into_inner())
+            .await
+            .map(Response::new)
     }
 
     type StepStreamStream = ResponseStream<proto::StepResponse>;
@@ -211,7 +220,7 @@ impl Prac for PracService {
                                 break;
                             }
                         };
-                        let response = state.step(&request);
+                        let response = state.step(request).await;
                         let failed = response.is_err();
                         if !send(&tx, response, &state.shutdown).await {
                             let _ = tx.try_send(Err(shutting_down()));

@@ -11,8 +11,8 @@ use rand_chacha::ChaCha8Rng;
 use tokio::sync::watch;
 
 use crate::plan::{
-    DEFAULT_MAX_HORIZON, Growth, NonFinite, Plan, PlanView, ReplanConfig, ReplanOutcome,
-    ReplanScratch, replan,
+    DEFAULT_MAX_HORIZON, Growth, NonFinite, Plan, PlanView, ReplanConfig, ReplanJob, ReplanOutcome,
+    ReplanScratch, replan_batch,
 };
 use crate::policy::{Evaluator, Policy};
 use crate::proto;
@@ -129,6 +129,13 @@ pub enum StepError {
     NonFinite(#[from] NonFinite),
 }
 
+/// A checked step, before its replan: its index and whether it starts an episode.
+#[derive(Clone, Copy, Debug)]
+pub struct Begun {
+    pub step: u64,
+    pub fresh: bool,
+}
+
 /// What one step did, for the response.
 #[derive(Clone, Copy, Debug)]
 pub struct StepReport {
@@ -142,7 +149,9 @@ pub struct Session {
     pub id: String,
     pub policy: Arc<Policy>,
     pub settings: SessionSettings,
-    evaluator: Evaluator,
+    /// Networks and buffers for steps served one at a time (not through the batch worker); made
+    /// on the first such step.
+    evaluator: Option<Evaluator>,
     rng: ChaCha8Rng,
     scratch: ReplanScratch,
     /// The committed plan: plan[0] is the action of step `step`.
@@ -164,7 +173,7 @@ impl Session {
             ..Default::default()
         }));
         Session {
-            evaluator: Evaluator::new(policy.clone()),
+            evaluator: None,
             rng: ChaCha8Rng::seed_from_u64(settings.seed),
             scratch: ReplanScratch::new(obs, act),
             plan: Plan::with_capacity(obs, act, capacity),
@@ -185,12 +194,37 @@ impl Session {
 
     /// Algorithm 1, lines 4-10 as a server: replan on the observed state (the old plan minus the
     /// action executed at the last step), and commit the result. Replan and the networks do not
-    /// allocate here after the session's first step.
+    /// allocate here after the session's first step. The batch worker does the same in three
+    /// parts ([`Session::begin`], [`Session::job`], [`Session::commit`]) around one
+    /// `replan_batch` for many sessions.
     pub fn step(
         &mut self,
         observation: &[f32],
         new_episode: bool,
     ) -> Result<StepReport, StepError> {
+        let begun = self.begin(observation, new_episode)?;
+        // A failed replan must not advance the session's rng either.
+        let mut rng = self.rng.clone();
+        let mut evaluator = std::mem::replace(&mut self.evaluator, None);
+        let mut scratch = std::mem::take(&mut self.scratch);
+        let mut results = [Ok(crate::plan::ReplanOutcome {
+            kept: 0,
+            broke_at: None,
+            appended: 0,
+        })];
+        {
+            let evaluator = evaluator.get_or_insert_with(|| Evaluator::new(self.policy.clone()));
+            let mut jobs = [self.job(observation, &begun, &mut rng)];
+            replan_batch(evaluator, &mut jobs, &mut scratch, &mut results);
+        }
+        self.evaluator = evaluator;
+        self.scratch = scratch;
+        let [result] = results;
+        Ok(self.commit(&begun, result?, rng))
+    }
+
+    /// Checks the observation and works out the step index; changes nothing.
+    pub fn begin(&self, observation: &[f32], new_episode: bool) -> Result<Begun, StepError> {
         let obs_dim = self.policy.obs_dim();
         if observation.len() != obs_dim {
             return Err(StepError::InvalidObservation(format!(
@@ -206,38 +240,60 @@ impl Session {
             )));
         }
         let fresh = new_episode || self.step.is_none();
-        let (t, old) = match self.step {
-            Some(prev) if !fresh => (prev + 1, self.plan.tail(1)),
-            _ => (0, PlanView::empty()),
+        let step = match self.step {
+            Some(prev) if !fresh => prev + 1,
+            _ => 0,
         };
-        // A failed replan must not advance the session's rng either.
-        let mut rng = self.rng.clone();
-        let outcome = replan(
-            &mut self.evaluator,
-            &self.settings.replan,
-            observation,
-            t,
+        Ok(Begun { step, fresh })
+    }
+
+    /// The Replan job of this step: the new plan goes to the spare buffer, so a failed replan
+    /// leaves the committed plan as it was. `rng` is a copy of the session's, kept on commit.
+    pub fn job<'a>(
+        &'a mut self,
+        observation: &'a [f32],
+        begun: &Begun,
+        rng: &'a mut ChaCha8Rng,
+    ) -> ReplanJob<'a, ChaCha8Rng> {
+        let old = if begun.fresh {
+            PlanView::empty()
+        } else {
+            self.plan.tail(1)
+        };
+        ReplanJob {
+            config: self.settings.replan,
+            state: observation,
+            step: begun.step,
             old,
-            &mut self.spare,
-            &mut self.scratch,
-            &mut rng,
-        )?;
+            new: &mut self.spare,
+            rng,
+        }
+    }
+
+    /// Makes the replanned plan the committed one.
+    pub fn commit(&mut self, begun: &Begun, outcome: ReplanOutcome, rng: ChaCha8Rng) -> StepReport {
         self.rng = rng;
         std::mem::swap(&mut self.plan, &mut self.spare);
-        if fresh && self.step.is_some() {
+        if begun.fresh && self.step.is_some() {
             self.episode += 1;
         }
+        let t = begun.step;
         self.step = Some(t);
         self.steps_served += 1;
         if self.plan_updates.receiver_count() > 0 {
             self.plan_updates.send_replace(Arc::new(self.plan_proto()));
         }
-        Ok(StepReport {
+        StepReport {
             outcome,
             step: t,
             episode: self.episode,
             f_t: t + 1 - self.plan.decided_at(0),
-        })
+        }
+    }
+
+    /// A copy of the session's rng, for a job (kept only if the step commits).
+    pub fn rng(&self) -> ChaCha8Rng {
+        self.rng.clone()
     }
 
     fn planned_actions(&self) -> Vec<proto::PlannedAction> {
@@ -312,6 +368,8 @@ pub enum SessionError {
 }
 
 pub struct SessionSlot {
+    /// The session's policy (also in the session), readable without the lock.
+    pub policy: Arc<Policy>,
     session: Mutex<Session>,
     last_used_ms: AtomicU64,
 }
@@ -395,6 +453,7 @@ impl Sessions {
         slots.insert(
             id,
             Arc::new(SessionSlot {
+                policy: session.policy.clone(),
                 session: Mutex::new(session),
                 last_used_ms: AtomicU64::new(self.now_ms()),
             }),

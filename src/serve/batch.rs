@@ -1,0 +1,216 @@
+//! Cross-session dynamic batching: steps from all sessions go through one bounded queue to
+//! worker threads, which take what is queued (waiting up to the batch window for more), and
+//! replan each policy's sessions together with [`replan_batch`] so that every network evaluation
+//! is a matrix product over the batch. A full queue is answered at once with RESOURCE_EXHAUSTED.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use crossbeam_channel::{Receiver, Sender, TrySendError};
+use tokio::sync::oneshot;
+use tonic::Status;
+
+use super::session::{Begun, SessionSlot};
+use crate::plan::{NonFinite, ReplanOutcome, ReplanScratch, replan_batch};
+use crate::policy::{Evaluator, Policy};
+use crate::proto;
+
+/// Settings of the batch workers.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BatchConfig {
+    /// Most steps replanned together.
+    pub max_batch: usize,
+    /// How long a worker waits for more steps after the first (0: take only what is queued).
+    pub window: Duration,
+    /// Steps waiting at most; beyond, requests are refused (RESOURCE_EXHAUSTED).
+    pub queue: usize,
+    pub workers: usize,
+}
+
+struct Work {
+    slot: Arc<SessionSlot>,
+    request: proto::StepRequest,
+    reply: oneshot::Sender<Result<proto::StepResponse, Status>>,
+}
+
+/// The submitting side of the batch queue.
+#[derive(Clone)]
+pub struct Batcher {
+    queue: Sender<Work>,
+    capacity: usize,
+}
+
+impl Batcher {
+    /// Starts the worker threads; they stop when every `Batcher` clone is dropped.
+    pub fn start(config: BatchConfig) -> Batcher {
+        let (queue, receiver) = crossbeam_channel::bounded(config.queue.max(1));
+        for i in 0..config.workers.max(1) {
+            let receiver = receiver.clone();
+            std::thread::Builder::new()
+                .name(format!("prac-batch-{i}"))
+                .spawn(move || Worker::new(config).run(&receiver))
+                .expect("spawning a batch worker thread");
+        }
+        Batcher {
+            queue,
+            capacity: config.queue.max(1),
+        }
+    }
+
+    /// Queues a step and waits for its answer.
+    pub async fn step(
+        &self,
+        slot: Arc<SessionSlot>,
+        request: proto::StepRequest,
+    ) -> Result<proto::StepResponse, Status> {
+        let (reply, answer) = oneshot::channel();
+        let work = Work {
+            slot,
+            request,
+            reply,
+        };
+        match self.queue.try_send(work) {
+            Ok(()) => {}
+            Err(TrySendError::Full(_)) => {
+                return Err(Status::resource_exhausted(format!(
+                    "overloaded: {} steps are already queued; retry later or use fewer sessions",
+                    self.capacity
+                )));
+            }
+            Err(TrySendError::Disconnected(_)) => {
+                return Err(Status::unavailable("the batch workers have stopped"));
+            }
+        }
+        answer
+            .await
+            .unwrap_or_else(|_| Err(Status::internal("the batch worker dropped the step")))
+    }
+}
+
+/// One worker's networks and buffers, reused across batches.
+struct Worker {
+    config: BatchConfig,
+    evaluators: HashMap<*const Policy, Evaluator>,
+    scratch: ReplanScratch,
+}
+
+impl Worker {
+    fn new(config: BatchConfig) -> Worker {
+        Worker {
+            config,
+            evaluators: HashMap::new(),
+            scratch: ReplanScratch::default(),
+        }
+    }
+
+    fn run(mut self, receiver: &Receiver<Work>) {
+        let mut batch = Vec::with_capacity(self.config.max_batch);
+        let mut deferred = Vec::new();
+        while let Ok(first) = receiver.recv() {
+            batch.push(first);
+            let deadline = Instant::now() + self.config.window;
+            while batch.len() < self.config.max_batch {
+                let next = match receiver.try_recv() {
+                    Ok(work) => Some(work),
+                    Err(_) if self.config.window.is_zero() => None,
+                    Err(_) => receiver.recv_deadline(deadline).ok(),
+                };
+                match next {
+                    Some(work) => batch.push(work),
+                    None => break,
+                }
+            }
+            // A session twice in one batch (two streams on one session) goes in order: its
+            // later steps wait for the next round.
+            while !batch.is_empty() {
+                self.process(&mut batch, &mut deferred);
+                std::mem::swap(&mut batch, &mut deferred);
+            }
+        }
+    }
+
+    fn process(&mut self, batch: &mut Vec<Work>, deferred: &mut Vec<Work>) {
+        // Group by policy: one replan_batch per policy.
+        let mut groups: HashMap<*const Policy, Vec<Work>> = HashMap::new();
+        for work in batch.drain(..) {
+            let policy = Arc::as_ptr(&work.slot.policy);
+            groups.entry(policy).or_default().push(work);
+        }
+        for (key, works) in groups {
+            let mut seen: Vec<*const SessionSlot> = Vec::with_capacity(works.len());
+            let mut mine = Vec::with_capacity(works.len());
+            for work in works {
+                let ptr = Arc::as_ptr(&work.slot);
+                if seen.contains(&ptr) {
+                    deferred.push(work);
+                } else {
+                    seen.push(ptr);
+                    mine.push(work);
+                }
+            }
+            self.replan_group(key, mine);
+        }
+    }
+
+    /// Replans the sessions of `works` (all of one policy, each session once) together.
+    fn replan_group(&mut self, key: *const Policy, mut works: Vec<Work>) {
+        // Sessions are locked in one global order, so workers never wait on each other in a cycle.
+        works.sort_by_key(|work| Arc::as_ptr(&work.slot));
+        let mut slots = Vec::with_capacity(works.len());
+        let mut requests = Vec::with_capacity(works.len());
+        let mut replies = Vec::with_capacity(works.len());
+        for work in works {
+            slots.push(work.slot);
+            requests.push(work.request);
+            replies.push(work.reply);
+        }
+        let mut answers: Vec<Result<proto::StepResponse, Status>> = Vec::with_capacity(slots.len());
+        {
+            let mut sessions: Vec<_> = slots.iter().map(|slot| slot.lock()).collect();
+            let begun: Vec<Result<Begun, Status>> = sessions
+                .iter()
+                .zip(&requests)
+                .map(|(s, r)| s.begin(&r.observation, r.new_episode).map_err(Status::from))
+                .collect();
+            let mut rngs: Vec<_> = sessions.iter().map(|s| s.rng()).collect();
+            let policy = sessions[0].policy.clone();
+            let max_batch = self.config.max_batch;
+            let evaluator = self
+                .evaluators
+                .entry(key)
+                .or_insert_with(|| Evaluator::with_capacity(policy, max_batch));
+            let mut jobs = Vec::with_capacity(sessions.len());
+            for (((session, rng), request), begun) in sessions
+                .iter_mut()
+                .zip(&mut rngs)
+                .zip(&requests)
+                .zip(&begun)
+            {
+                if let Ok(begun) = begun {
+                    jobs.push(session.job(&request.observation, begun, rng));
+                }
+            }
+            let mut results: Vec<Result<ReplanOutcome, NonFinite>> =
+                vec![Err(NonFinite { what: "", index: 0 }); jobs.len()];
+            replan_batch(evaluator, &mut jobs, &mut self.scratch, &mut results);
+            drop(jobs);
+            let mut results = results.into_iter();
+            for ((session, rng), begun) in sessions.iter_mut().zip(rngs).zip(begun) {
+                let answer = begun.and_then(|begun| {
+                    let outcome = results
+                        .next()
+                        .expect("one result per job")
+                        .map_err(|e| Status::from(super::session::StepError::from(e)))?;
+                    let report = session.commit(&begun, outcome, rng);
+                    Ok(session.response(&report))
+                });
+                answers.push(answer);
+            }
+        }
+        for (reply, answer) in replies.into_iter().zip(answers) {
+            // The client may have gone; nothing to do then.
+            let _ = reply.send(answer);
+        }
+    }
+}
