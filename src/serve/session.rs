@@ -205,7 +205,7 @@ impl Session {
         let begun = self.begin(observation, new_episode)?;
         // A failed replan must not advance the session's rng either.
         let mut rng = self.rng.clone();
-        let mut evaluator = std::mem::replace(&mut self.evaluator, None);
+        let mut evaluator = self.evaluator.take();
         let mut scratch = std::mem::take(&mut self.scratch);
         let mut results = [Ok(crate::plan::ReplanOutcome {
             kept: 0,
