@@ -5,8 +5,8 @@ use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
-use prac::plan::ReplanConfig;
-use prac::policy::{Policy, hopper_sized_manifest};
+use prac::plan::{ReplanConfig, ReplanScratch};
+use prac::policy::{Evaluator, Policy, hopper_sized_manifest};
 use prac::serve::session::{Session, SessionSettings};
 
 struct Counting;
@@ -48,12 +48,18 @@ fn steps_after_the_first_do_not_allocate() {
             seed: 1,
         };
         let mut session = Session::new("s".into(), policy.clone(), settings);
+        let mut evaluator = Evaluator::for_sessions(policy.clone(), 1);
+        let mut scratch = ReplanScratch::new(15, 3);
         let mut obs: Vec<f32> = (0..15).map(|i| (i as f32 * 0.3).sin()).collect();
-        session.step(&obs, true).unwrap();
+        session
+            .step(&mut evaluator, &mut scratch, &obs, true)
+            .unwrap();
         COUNTING.store(true, Ordering::SeqCst);
         for t in 0..200 {
             obs[t % 15] += 0.01;
-            session.step(&obs, t % 50 == 0).unwrap();
+            session
+                .step(&mut evaluator, &mut scratch, &obs, t % 50 == 0)
+                .unwrap();
         }
         COUNTING.store(false, Ordering::SeqCst);
         assert_eq!(

@@ -206,12 +206,19 @@ pub struct ReplanJob<'a, R> {
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Phase {
-    /// Testing old action `checked`.
+    /// Testing old actions from `checked` on.
     Checking,
     /// Appending policy actions, `appended` of `wanted` so far.
     Extending,
     Done,
 }
+
+/// Old actions tested together in a job's first round; the chunk doubles each round. Testing
+/// ahead needs only the model's rollout over the old actions, so the actor and critics see the
+/// chunk as one batch; work past a break is wasted, hence the small start.
+const FIRST_CHUNK: usize = 2;
+/// The largest chunk: an evaluator sized for this many rows per session never grows.
+pub const MAX_CHUNK: usize = 32;
 
 #[derive(Clone, Debug)]
 struct JobState {
@@ -221,9 +228,16 @@ struct JobState {
     broke_at: Option<usize>,
     wanted: usize,
     appended: usize,
-    /// pi(s) of this round was drawn at the breaking state and opens the extension.
+    /// pi(s) at the breaking state is drawn already and opens the extension.
     have_policy_action: bool,
     error: Option<NonFinite>,
+    /// Size of the next chunk of old actions to test.
+    chunk: usize,
+    /// This round: old actions under test, their first row in the chunk buffers, and how many
+    /// rollout states are finite (the model may fail part-way).
+    testing: usize,
+    first_row: usize,
+    finite_states: usize,
 }
 
 /// Buffers Replan reuses from step to step; they grow to the largest batch seen.
@@ -235,21 +249,18 @@ pub struct ReplanScratch {
     /// Per job: current (imagined) state and the policy's action there.
     states: Vec<f32>,
     policy_actions: Vec<f32>,
-    /// Gathered rows of this round's network calls, and which job each row belongs to.
-    act_rows: Vec<usize>,
-    act_obs: Vec<f32>,
-    act_noise: Vec<f32>,
-    act_out: Vec<f32>,
-    check_rows: Vec<usize>,
-    check_obs: Vec<f32>,
-    check_policy: Vec<f32>,
-    check_planned: Vec<f32>,
+    /// Per tested old action (rows grouped by job): the rollout state before it, and one more
+    /// state per job after its chunk.
+    chunk_states: Vec<f32>,
+    chunk_policy: Vec<f32>,
+    /// Gathered rows of this round's network calls, and which job (or chunk row) each is.
+    rows: Vec<usize>,
+    obs: Vec<f32>,
+    noise: Vec<f32>,
+    actions: Vec<f32>,
+    out: Vec<f32>,
     q_policy: Vec<f32>,
     q_planned: Vec<f32>,
-    model_rows: Vec<usize>,
-    model_obs: Vec<f32>,
-    model_actions: Vec<f32>,
-    model_next: Vec<f32>,
 }
 
 impl ReplanScratch {
@@ -260,29 +271,22 @@ impl ReplanScratch {
 
     /// Scratch whose buffers fit batches of up to `jobs` sessions without growing.
     pub fn with_capacity(obs_dim: usize, act_dim: usize, jobs: usize) -> ReplanScratch {
-        let obs = || Vec::with_capacity(jobs * obs_dim);
-        let act = || Vec::with_capacity(jobs * act_dim);
-        let one = || Vec::with_capacity(jobs);
+        let rows = jobs * (MAX_CHUNK + 1);
         ReplanScratch {
             obs_dim,
             act_dim,
             jobs: Vec::with_capacity(jobs),
-            states: obs(),
-            policy_actions: act(),
-            act_rows: one(),
-            act_obs: obs(),
-            act_noise: act(),
-            act_out: act(),
-            check_rows: one(),
-            check_obs: obs(),
-            check_policy: act(),
-            check_planned: act(),
-            q_policy: Vec::with_capacity(jobs),
-            q_planned: Vec::with_capacity(jobs),
-            model_rows: one(),
-            model_obs: obs(),
-            model_actions: act(),
-            model_next: obs(),
+            states: Vec::with_capacity(jobs * obs_dim),
+            policy_actions: Vec::with_capacity(jobs * act_dim),
+            chunk_states: Vec::with_capacity(rows * obs_dim),
+            chunk_policy: Vec::with_capacity(rows * act_dim),
+            rows: Vec::with_capacity(rows),
+            obs: Vec::with_capacity(rows * obs_dim),
+            noise: Vec::with_capacity(rows * act_dim),
+            actions: Vec::with_capacity(rows * act_dim),
+            out: Vec::with_capacity(rows * obs_dim.max(act_dim)),
+            q_policy: Vec::with_capacity(rows),
+            q_planned: Vec::with_capacity(rows),
         }
     }
 }
@@ -299,7 +303,7 @@ fn all_finite(values: &[f32]) -> bool {
 /// The old plan is checked up to `max_horizon` actions; the new plan never exceeds `max_horizon`
 /// and is never empty. A non-finite network output is an error; `new` is then unusable.
 #[allow(clippy::too_many_arguments)]
-pub fn replan<N: Networks, R: Rng>(
+pub fn replan<N: Networks, R: Rng + Clone>(
     nets: &mut N,
     config: &ReplanConfig,
     state: &[f32],
@@ -328,9 +332,11 @@ pub fn replan<N: Networks, R: Rng>(
 }
 
 /// [`replan`] for many sessions of one policy at once, with the same result for each as alone:
-/// every round evaluates the actor, the critics and the model once over all sessions that need
-/// them. `results[i]` receives job i's outcome.
-pub fn replan_batch<N: Networks, R: Rng>(
+/// every round evaluates the actor, the critics and the model over all sessions that need them.
+/// Old actions are tested in chunks (the model's rollout over them first, then one actor and
+/// one critic evaluation for the whole chunk); the outcome, the plan and the rng draws are those
+/// of testing one action at a time. `results[i]` receives job i's outcome.
+pub fn replan_batch<N: Networks, R: Rng + Clone>(
     nets: &mut N,
     jobs: &mut [ReplanJob<'_, R>],
     scratch: &mut ReplanScratch,
@@ -356,6 +362,10 @@ pub fn replan_batch<N: Networks, R: Rng>(
             appended: 0,
             have_policy_action: false,
             error: None,
+            chunk: FIRST_CHUNK,
+            testing: 0,
+            first_row: 0,
+            finite_states: 0,
         });
     }
     loop {
@@ -368,9 +378,10 @@ pub fn replan_batch<N: Networks, R: Rng>(
         if scratch.jobs.iter().all(|st| st.phase == Phase::Done) {
             break;
         }
+        roll_chunks(nets, jobs, scratch);
         draw_policy_actions(nets, jobs, scratch);
-        check_planned_actions(nets, jobs, scratch);
-        roll_model(nets, jobs, scratch);
+        test_chunks(nets, jobs, scratch);
+        extend(nets, jobs, scratch);
     }
     for (i, st) in scratch.jobs.iter().enumerate() {
         let kept = jobs[i].new.len() - st.appended;
@@ -405,152 +416,266 @@ fn fail(st: &mut JobState, what: &'static str, index: usize) {
     st.phase = Phase::Done;
 }
 
-/// pi(s) for every job that needs it this round, in one actor call.
-fn draw_policy_actions<N: Networks, R: Rng>(
-    nets: &mut N,
-    jobs: &mut [ReplanJob<'_, R>],
-    s: &mut ReplanScratch,
-) {
-    let (od, ad) = (s.obs_dim, s.act_dim);
-    s.act_rows.clear();
-    s.act_obs.clear();
-    s.act_noise.clear();
-    for (i, (job, st)) in jobs.iter_mut().zip(&s.jobs).enumerate() {
-        let needs = match st.phase {
-            Phase::Checking => true,
-            Phase::Extending => !(st.appended == 0 && st.have_policy_action),
-            Phase::Done => false,
-        };
-        if !needs {
-            continue;
-        }
-        s.act_rows.push(i);
-        s.act_obs.extend_from_slice(&s.states[i * od..(i + 1) * od]);
-        for _ in 0..ad {
-            // The rng is drawn exactly as often, and in the same order, as one replan alone.
-            let z = if job.config.sampled {
-                job.rng.sample(StandardNormal)
-            } else {
-                0.0
-            };
-            s.act_noise.push(z);
-        }
-    }
-    if s.act_rows.is_empty() {
-        return;
-    }
-    crate::nn::resize(&mut s.act_out, s.act_rows.len() * ad);
-    nets.act(&s.act_obs, &s.act_noise, &mut s.act_out);
-    for (r, &i) in s.act_rows.iter().enumerate() {
-        let action = &s.act_out[r * ad..(r + 1) * ad];
-        let st = &mut s.jobs[i];
-        if !all_finite(action) {
-            let index = jobs[i].new.len();
-            fail(st, "actor", index);
-            continue;
-        }
-        s.policy_actions[i * ad..(i + 1) * ad].copy_from_slice(action);
-    }
-}
-
-/// The plan-following test for every job still checking, in one critic call.
-fn check_planned_actions<N: Networks, R: Rng>(
-    nets: &mut N,
-    jobs: &mut [ReplanJob<'_, R>],
-    s: &mut ReplanScratch,
-) {
-    let (od, ad) = (s.obs_dim, s.act_dim);
-    s.check_rows.clear();
-    s.check_obs.clear();
-    s.check_policy.clear();
-    s.check_planned.clear();
-    for (i, (job, st)) in jobs.iter().zip(&s.jobs).enumerate() {
+/// The model's rollout over each checking job's next chunk of old actions, batched across jobs
+/// step by step: chunk_states gets s_j, s_j+1, ..., s_j+c for the chunk's c actions.
+fn roll_chunks<N: Networks, R>(nets: &mut N, jobs: &[ReplanJob<'_, R>], s: &mut ReplanScratch) {
+    let od = s.obs_dim;
+    let mut rows = 0;
+    let mut longest = 0;
+    for st in s.jobs.iter_mut() {
+        st.testing = 0;
         if st.phase != Phase::Checking {
             continue;
         }
-        s.check_rows.push(i);
-        s.check_obs
-            .extend_from_slice(&s.states[i * od..(i + 1) * od]);
-        s.check_policy
-            .extend_from_slice(&s.policy_actions[i * ad..(i + 1) * ad]);
-        s.check_planned
-            .extend_from_slice(job.old.action(st.checked));
+        st.testing = (st.limit - st.checked).min(st.chunk);
+        st.chunk = (st.chunk * 2).min(MAX_CHUNK);
+        st.first_row = rows;
+        st.finite_states = st.testing + 1;
+        rows += st.testing + 1;
+        longest = longest.max(st.testing);
     }
-    if s.check_rows.is_empty() {
-        return;
-    }
-    let rows = s.check_rows.len();
-    crate::nn::resize(&mut s.q_policy, rows);
-    crate::nn::resize(&mut s.q_planned, rows);
-    nets.q_pair(
-        &s.check_obs,
-        &s.check_policy,
-        &s.check_planned,
-        &mut s.q_policy,
-        &mut s.q_planned,
-    );
-    for (r, &i) in s.check_rows.iter().enumerate() {
-        let (q_policy, q_planned) = (s.q_policy[r], s.q_planned[r]);
-        let st = &mut s.jobs[i];
-        if !q_policy.is_finite() || !q_planned.is_finite() {
-            fail(st, "critic", st.checked);
-            continue;
+    crate::nn::resize(&mut s.chunk_states, rows * od);
+    for (i, st) in s.jobs.iter().enumerate() {
+        if st.testing > 0 {
+            let at = st.first_row * od;
+            s.chunk_states[at..at + od].copy_from_slice(&s.states[i * od..(i + 1) * od]);
         }
-        if q_planned + jobs[i].config.epsilon < q_policy {
-            st.broke_at = Some(st.checked);
-            st.have_policy_action = true;
-            start_extending(&jobs[i], st);
+    }
+    for m in 0..longest {
+        s.rows.clear();
+        s.obs.clear();
+        s.actions.clear();
+        for (i, (job, st)) in jobs.iter().zip(&s.jobs).enumerate() {
+            if m < st.testing && m + 1 < st.finite_states {
+                let at = (st.first_row + m) * od;
+                s.rows.push(i);
+                s.obs.extend_from_slice(&s.chunk_states[at..at + od]);
+                s.actions.extend_from_slice(job.old.action(st.checked + m));
+            }
+        }
+        if s.rows.is_empty() {
+            break;
+        }
+        crate::nn::resize(&mut s.out, s.rows.len() * od);
+        nets.predict_next(&s.obs, &s.actions, &mut s.out);
+        for (r, &i) in s.rows.iter().enumerate() {
+            let st = &mut s.jobs[i];
+            let next = &s.out[r * od..(r + 1) * od];
+            if !all_finite(next) {
+                // States past this one are unusable; whether that matters depends on the test.
+                st.finite_states = m + 1;
+                continue;
+            }
+            let at = (st.first_row + m + 1) * od;
+            s.chunk_states[at..at + od].copy_from_slice(next);
         }
     }
 }
 
-/// One model step for every job that keeps an old action or appends a policy action.
-fn roll_model<N: Networks, R: Rng>(
+/// Rows of the chunk whose states are finite.
+fn chunk_rows(st: &JobState) -> usize {
+    st.testing.min(st.finite_states)
+}
+
+/// pi(s) for every state that needs it this round, in one actor call: the chunk states of
+/// checking jobs (noise drawn from a copy of the job's rng: only the draws a one-at-a-time test
+/// would make are taken from the rng itself, in `test_chunks`) and the current state of
+/// extending jobs.
+fn draw_policy_actions<N: Networks, R: Rng + Clone>(
     nets: &mut N,
     jobs: &mut [ReplanJob<'_, R>],
     s: &mut ReplanScratch,
 ) {
     let (od, ad) = (s.obs_dim, s.act_dim);
-    s.model_rows.clear();
-    s.model_obs.clear();
-    s.model_actions.clear();
-    for (i, (job, st)) in jobs.iter().zip(&s.jobs).enumerate() {
-        let action = match st.phase {
-            Phase::Checking => job.old.action(st.checked),
-            Phase::Extending => &s.policy_actions[i * ad..(i + 1) * ad],
-            Phase::Done => continue,
-        };
-        s.model_rows.push(i);
-        s.model_obs
-            .extend_from_slice(&s.states[i * od..(i + 1) * od]);
-        s.model_actions.extend_from_slice(action);
+    s.rows.clear();
+    s.obs.clear();
+    s.noise.clear();
+    for (i, (job, st)) in jobs.iter_mut().zip(&s.jobs).enumerate() {
+        match st.phase {
+            Phase::Checking => {
+                let rows = chunk_rows(st);
+                let at = st.first_row * od;
+                s.obs.extend_from_slice(&s.chunk_states[at..at + rows * od]);
+                let mut ahead = job.rng.clone();
+                for _ in 0..rows * ad {
+                    s.noise.push(if job.config.sampled {
+                        ahead.sample(StandardNormal)
+                    } else {
+                        0.0
+                    });
+                }
+                s.rows.extend(std::iter::repeat_n(i, rows));
+            }
+            Phase::Extending if !(st.appended == 0 && st.have_policy_action) => {
+                s.obs.extend_from_slice(&s.states[i * od..(i + 1) * od]);
+                for _ in 0..ad {
+                    s.noise.push(if job.config.sampled {
+                        job.rng.sample(StandardNormal)
+                    } else {
+                        0.0
+                    });
+                }
+                s.rows.push(i);
+            }
+            _ => {}
+        }
     }
-    if s.model_rows.is_empty() {
+    if s.rows.is_empty() {
         return;
     }
-    crate::nn::resize(&mut s.model_next, s.model_rows.len() * od);
-    nets.predict_next(&s.model_obs, &s.model_actions, &mut s.model_next);
-    for (r, &i) in s.model_rows.iter().enumerate() {
-        let next = &s.model_next[r * od..(r + 1) * od];
-        let action = &s.model_actions[r * ad..(r + 1) * ad];
+    crate::nn::resize(&mut s.out, s.rows.len() * ad);
+    nets.act(&s.obs, &s.noise, &mut s.out);
+    crate::nn::resize(&mut s.chunk_policy, s.chunk_states.len() / od * ad);
+    let mut r = 0;
+    while r < s.rows.len() {
+        let i = s.rows[r];
+        let st = &mut s.jobs[i];
+        if st.phase == Phase::Checking {
+            let rows = chunk_rows(st);
+            let at = st.first_row * ad;
+            s.chunk_policy[at..at + rows * ad].copy_from_slice(&s.out[r * ad..(r + rows) * ad]);
+            r += rows;
+        } else {
+            let action = &s.out[r * ad..(r + 1) * ad];
+            if all_finite(action) {
+                s.policy_actions[i * ad..(i + 1) * ad].copy_from_slice(action);
+            } else {
+                let index = jobs[i].new.len();
+                fail(st, "actor", index);
+            }
+            r += 1;
+        }
+    }
+}
+
+/// The plan-following test over every checking job's chunk, in one critic call; then each job
+/// takes its chunk's actions in order until one fails the test (or a network value is not
+/// finite), exactly as testing one at a time would.
+fn test_chunks<N: Networks, R: Rng>(
+    nets: &mut N,
+    jobs: &mut [ReplanJob<'_, R>],
+    s: &mut ReplanScratch,
+) {
+    let (od, ad) = (s.obs_dim, s.act_dim);
+    s.obs.clear();
+    s.actions.clear();
+    s.noise.clear();
+    let mut rows = 0;
+    for (job, st) in jobs.iter().zip(&s.jobs) {
+        if st.phase != Phase::Checking {
+            continue;
+        }
+        let count = chunk_rows(st);
+        s.obs
+            .extend_from_slice(&s.chunk_states[st.first_row * od..(st.first_row + count) * od]);
+        s.noise
+            .extend_from_slice(&s.chunk_policy[st.first_row * ad..(st.first_row + count) * ad]);
+        for m in 0..count {
+            s.actions.extend_from_slice(job.old.action(st.checked + m));
+        }
+        rows += count;
+    }
+    if rows == 0 {
+        return;
+    }
+    crate::nn::resize(&mut s.q_policy, rows);
+    crate::nn::resize(&mut s.q_planned, rows);
+    // `noise` holds the policy's actions here (a reused buffer).
+    nets.q_pair(
+        &s.obs,
+        &s.noise,
+        &s.actions,
+        &mut s.q_policy,
+        &mut s.q_planned,
+    );
+    let mut row = 0;
+    for (i, (job, st)) in jobs.iter_mut().zip(s.jobs.iter_mut()).enumerate() {
+        if st.phase != Phase::Checking {
+            continue;
+        }
+        let count = chunk_rows(st);
+        let base = row;
+        row += count;
+        let mut used = 0;
+        for m in 0..st.testing {
+            let j = st.checked;
+            let state_row = st.first_row + m;
+            used += 1;
+            if m >= count {
+                // The rollout failed before this state: the last kept action's model step.
+                fail(st, "model", j);
+                break;
+            }
+            let pi = &s.chunk_policy[state_row * ad..(state_row + 1) * ad];
+            if !all_finite(pi) {
+                fail(st, "actor", j);
+                break;
+            }
+            let (q_policy, q_planned) = (s.q_policy[base + m], s.q_planned[base + m]);
+            if !q_policy.is_finite() || !q_planned.is_finite() {
+                fail(st, "critic", j);
+                break;
+            }
+            let state = &s.chunk_states[state_row * od..(state_row + 1) * od];
+            if q_planned + job.config.epsilon < q_policy {
+                st.broke_at = Some(j);
+                st.have_policy_action = true;
+                s.states[i * od..(i + 1) * od].copy_from_slice(state);
+                s.policy_actions[i * ad..(i + 1) * ad].copy_from_slice(pi);
+                start_extending(job, st);
+                break;
+            }
+            let next_row = state_row + 1;
+            if m + 1 >= st.finite_states {
+                fail(st, "model", j);
+                break;
+            }
+            let next = &s.chunk_states[next_row * od..(next_row + 1) * od];
+            job.new.push(job.old.action(j), next, job.old.decided_at(j));
+            s.states[i * od..(i + 1) * od].copy_from_slice(next);
+            st.checked += 1;
+        }
+        if job.config.sampled {
+            // Take from the rng the draws one-at-a-time testing would have taken.
+            for _ in 0..used * ad {
+                let _: f32 = job.rng.sample(StandardNormal);
+            }
+        }
+    }
+}
+
+/// One appended policy action for every extending job: the model's step from its state.
+fn extend<N: Networks, R>(nets: &mut N, jobs: &mut [ReplanJob<'_, R>], s: &mut ReplanScratch) {
+    let (od, ad) = (s.obs_dim, s.act_dim);
+    s.rows.clear();
+    s.obs.clear();
+    s.actions.clear();
+    for (i, st) in s.jobs.iter().enumerate() {
+        if st.phase == Phase::Extending {
+            s.rows.push(i);
+            s.obs.extend_from_slice(&s.states[i * od..(i + 1) * od]);
+            s.actions
+                .extend_from_slice(&s.policy_actions[i * ad..(i + 1) * ad]);
+        }
+    }
+    if s.rows.is_empty() {
+        return;
+    }
+    crate::nn::resize(&mut s.out, s.rows.len() * od);
+    nets.predict_next(&s.obs, &s.actions, &mut s.out);
+    for (r, &i) in s.rows.iter().enumerate() {
+        let next = &s.out[r * od..(r + 1) * od];
+        let action = &s.actions[r * ad..(r + 1) * ad];
         let job = &mut jobs[i];
         let st = &mut s.jobs[i];
         if !all_finite(next) {
             fail(st, "model", job.new.len());
             continue;
         }
-        match st.phase {
-            Phase::Checking => {
-                job.new.push(action, next, job.old.decided_at(st.checked));
-                st.checked += 1;
-            }
-            _ => {
-                job.new.push(action, next, job.step);
-                st.appended += 1;
-                if st.appended == st.wanted {
-                    st.phase = Phase::Done;
-                }
-            }
+        job.new.push(action, next, job.step);
+        st.appended += 1;
+        if st.appended == st.wanted {
+            st.phase = Phase::Done;
         }
         s.states[i * od..(i + 1) * od].copy_from_slice(next);
     }

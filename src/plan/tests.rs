@@ -468,3 +468,119 @@ fn a_batch_gives_each_session_what_it_gets_alone() {
     }
     assert!(saw_break);
 }
+
+/// Algorithm 2 written the plain way, one action and one network call at a time: the reference
+/// the chunked, batched implementation must match exactly (plans, outcomes and rng draws).
+fn reference_replan(
+    nets: &mut ClosedForm,
+    config: &ReplanConfig,
+    state: &[f32],
+    step: u64,
+    old: PlanView<'_>,
+    new: &mut Plan,
+    rng: &mut ChaCha8Rng,
+) -> ReplanOutcome {
+    let draw = |rng: &mut ChaCha8Rng| -> f32 {
+        if config.sampled {
+            rng.sample(StandardNormal)
+        } else {
+            0.0
+        }
+    };
+    new.clear();
+    let mut s = state.to_vec();
+    let mut next = vec![0.0; OBS];
+    let mut pi = [0.0f32; ACT];
+    let mut broke_at = None;
+    for j in 0..old.len().min(config.max_horizon) {
+        let z = [draw(rng)];
+        nets.act(&s, &z, &mut pi);
+        let (mut q_pi, mut q_a) = ([0.0], [0.0]);
+        nets.q_pair(&s, &pi, old.action(j), &mut q_pi, &mut q_a);
+        if q_a[0] + config.epsilon < q_pi[0] {
+            broke_at = Some(j);
+            break;
+        }
+        nets.predict_next(&s, old.action(j), &mut next);
+        new.push(old.action(j), &next, old.decided_at(j));
+        s.copy_from_slice(&next);
+    }
+    let kept = new.len();
+    let wanted = match config.growth {
+        Growth::Grow(k) => k,
+        Growth::Fixed(n) => n.saturating_sub(kept),
+    }
+    .min(config.max_horizon - kept);
+    for m in 0..wanted {
+        if !(m == 0 && broke_at.is_some()) {
+            let z = [draw(rng)];
+            nets.act(&s, &z, &mut pi);
+        }
+        nets.predict_next(&s, &pi, &mut next);
+        new.push(&pi, &next, step);
+        s.copy_from_slice(&next);
+    }
+    ReplanOutcome {
+        kept,
+        broke_at,
+        appended: wanted,
+    }
+}
+
+#[test]
+fn chunked_batched_replan_matches_the_plain_algorithm() {
+    use rand::Rng;
+    let mut scenario = ChaCha8Rng::seed_from_u64(42);
+    for case in 0..300 {
+        let config = ReplanConfig {
+            epsilon: [0.0, 1e-4, 1e-3, 0.01, 0.1, 1e9][case % 6],
+            growth: if case % 3 == 0 {
+                Growth::Fixed(scenario.random_range(1..40))
+            } else {
+                Growth::Grow(scenario.random_range(1..4))
+            },
+            max_horizon: scenario.random_range(1..48),
+            sampled: case % 2 == 1,
+        };
+        let mut nets = ClosedForm {
+            model_bias: scenario.random_range(-0.02..0.02),
+            broken_model: false,
+        };
+        let state = [
+            scenario.random_range(-1.0..1.0),
+            scenario.random_range(-1.0..1.0),
+        ];
+        let mut old = Plan::with_capacity(OBS, ACT, 64);
+        for j in 0..scenario.random_range(0..45usize) {
+            let a = [scenario.random_range(-1.0f32..1.0)];
+            old.push(&a, &[0.0, 0.0], j as u64);
+        }
+        let mut expected = Plan::with_capacity(OBS, ACT, 64);
+        let mut rng_a = ChaCha8Rng::seed_from_u64(case as u64);
+        let outcome = reference_replan(
+            &mut nets,
+            &config,
+            &state,
+            50,
+            old.tail(0),
+            &mut expected,
+            &mut rng_a,
+        );
+        let mut got = Plan::with_capacity(OBS, ACT, 64);
+        let mut rng_b = ChaCha8Rng::seed_from_u64(case as u64);
+        let result = replan(
+            &mut nets,
+            &config,
+            &state,
+            50,
+            old.tail(0),
+            &mut got,
+            &mut ReplanScratch::new(OBS, ACT),
+            &mut rng_b,
+        );
+        assert_eq!(result, Ok(outcome), "case {case} {config:?}");
+        assert_eq!(got, expected, "case {case}");
+        // The same draws were taken from the rng.
+        assert_eq!(rng_a.random::<u64>(), rng_b.random::<u64>(), "case {case}");
+    }
+}

@@ -8,7 +8,7 @@ use rand_chacha::ChaCha8Rng;
 
 use crate::bundle::{Manifest, Normalization, QAggregation};
 use crate::nn::{Activation, Dense, Mlp, MlpScratch, resize};
-use crate::plan::Networks;
+use crate::plan::{MAX_CHUNK, Networks};
 
 /// SB3 clamps log_std to this range.
 pub const LOG_STD_MIN: f32 = -20.0;
@@ -165,6 +165,12 @@ impl Evaluator {
     /// An evaluator for one session: its buffers fit a batch of one from the start.
     pub fn new(policy: Arc<Policy>) -> Evaluator {
         Evaluator::with_capacity(policy, 1)
+    }
+
+    /// An evaluator for Replan over up to `sessions` sessions at once: it never grows (Replan
+    /// evaluates at most [`MAX_CHUNK`] states per session in one call).
+    pub fn for_sessions(policy: Arc<Policy>, sessions: usize) -> Evaluator {
+        Evaluator::with_capacity(policy, sessions * MAX_CHUNK)
     }
 
     /// An evaluator whose buffers fit batches of up to `rows` states without growing.

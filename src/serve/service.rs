@@ -1,5 +1,7 @@
 //! The `prac.v1.Prac` gRPC service.
 
+use std::cell::RefCell;
+use std::collections::HashMap;
 use std::pin::Pin;
 use std::sync::{Arc, RwLock};
 
@@ -12,7 +14,8 @@ use tonic::{Request, Response, Status, Streaming};
 use super::batch::Batcher;
 use super::registry::Registry;
 use super::session::{Session, SessionError, SessionSettings, Sessions, StepError, new_session_id};
-use crate::policy::Policy;
+use crate::plan::ReplanScratch;
+use crate::policy::{Evaluator, Policy};
 use crate::proto::{self, prac_server::Prac};
 
 /// What the handlers share.
@@ -105,9 +108,31 @@ impl ServerState {
         if let Some(batcher) = &self.batcher {
             return batcher.step(slot, request).await;
         }
-        let mut session = slot.lock();
-        let report = session.step(&request.observation, request.new_episode)?;
-        Ok(session.response(&report))
+        // Without batching, each thread keeps one evaluator per policy for the sessions it
+        // serves: memory grows with threads, not sessions.
+        thread_local! {
+            static INLINE: RefCell<HashMap<*const Policy, (Evaluator, ReplanScratch)>> =
+                RefCell::new(HashMap::new());
+        }
+        INLINE.with_borrow_mut(|inline| {
+            let (evaluator, scratch) =
+                inline.entry(Arc::as_ptr(&slot.policy)).or_insert_with(|| {
+                    let policy = slot.policy.clone();
+                    let (od, ad) = (policy.obs_dim(), policy.act_dim());
+                    (
+                        Evaluator::for_sessions(policy, 1),
+                        ReplanScratch::new(od, ad),
+                    )
+                });
+            let mut session = slot.lock();
+            let report = session.step(
+                evaluator,
+                scratch,
+                &request.observation,
+                request.new_episode,
+            )?;
+            Ok(session.response(&report))
+        })
     }
 }
 

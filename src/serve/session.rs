@@ -149,11 +149,7 @@ pub struct Session {
     pub id: String,
     pub policy: Arc<Policy>,
     pub settings: SessionSettings,
-    /// Networks and buffers for steps served one at a time (not through the batch worker); made
-    /// on the first such step.
-    evaluator: Option<Evaluator>,
     rng: ChaCha8Rng,
-    scratch: ReplanScratch,
     /// The committed plan: plan[0] is the action of step `step`.
     plan: Plan,
     spare: Plan,
@@ -173,9 +169,7 @@ impl Session {
             ..Default::default()
         }));
         Session {
-            evaluator: None,
             rng: ChaCha8Rng::seed_from_u64(settings.seed),
-            scratch: ReplanScratch::new(obs, act),
             plan: Plan::with_capacity(obs, act, capacity),
             spare: Plan::with_capacity(obs, act, capacity),
             step: None,
@@ -197,28 +191,27 @@ impl Session {
     /// allocate here after the session's first step. The batch worker does the same in three
     /// parts ([`Session::begin`], [`Session::job`], [`Session::commit`]) around one
     /// `replan_batch` for many sessions.
+    ///
+    /// `evaluator` (for this session's policy) and `scratch` may be shared by sessions served
+    /// from one thread; sized with [`Evaluator::for_sessions`] they never grow.
     pub fn step(
         &mut self,
+        evaluator: &mut Evaluator,
+        scratch: &mut ReplanScratch,
         observation: &[f32],
         new_episode: bool,
     ) -> Result<StepReport, StepError> {
+        debug_assert!(Arc::ptr_eq(evaluator.policy(), &self.policy));
         let begun = self.begin(observation, new_episode)?;
         // A failed replan must not advance the session's rng either.
         let mut rng = self.rng.clone();
-        let mut evaluator = self.evaluator.take();
-        let mut scratch = std::mem::take(&mut self.scratch);
-        let mut results = [Ok(crate::plan::ReplanOutcome {
+        let mut results = [Ok(ReplanOutcome {
             kept: 0,
             broke_at: None,
             appended: 0,
         })];
-        {
-            let evaluator = evaluator.get_or_insert_with(|| Evaluator::new(self.policy.clone()));
-            let mut jobs = [self.job(observation, &begun, &mut rng)];
-            replan_batch(evaluator, &mut jobs, &mut scratch, &mut results);
-        }
-        self.evaluator = evaluator;
-        self.scratch = scratch;
+        let mut jobs = [self.job(observation, &begun, &mut rng)];
+        replan_batch(evaluator, &mut jobs, scratch, &mut results);
         let [result] = results;
         Ok(self.commit(&begun, result?, rng))
     }

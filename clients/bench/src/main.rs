@@ -1,0 +1,657 @@
+//! prac-bench: N concurrent sessions against `prac serve`, over StepStream or unary Step, closed
+//! loop (each session waits for its answer) or open loop at a fixed request rate; reports
+//! throughput, HDR latency percentiles, errors by status, mean forecast and replans.
+//!
+//! With no --server it starts a local `prac serve` (loopback, ephemeral port) on a Hopper-sized
+//! policy with random weights and stops it at the end. It always stops by itself: after
+//! --duration or --steps, and at the latest after a hard deadline.
+
+use std::collections::{BTreeMap, VecDeque};
+use std::path::PathBuf;
+use std::process::Stdio;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, bail};
+use clap::{Parser, ValueEnum};
+use hdrhistogram::Histogram;
+use prac::proto::{self, prac_client::PracClient, session_options::Tolerance};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+use tokio::io::{AsyncBufReadExt, BufReader};
+use tokio::sync::{Mutex, mpsc};
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::transport::Channel;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize)]
+#[serde(rename_all = "lowercase")]
+enum Mode {
+    /// One bidirectional StepStream per session.
+    Stream,
+    /// One unary Step call per step.
+    Unary,
+}
+
+/// Load tester for prac serve.
+#[derive(Parser, Debug)]
+#[command(version, about)]
+struct Args {
+    /// Server address (host:port); without it a local prac serve is started for the run.
+    #[arg(long)]
+    server: Option<String>,
+    /// Policy to open sessions on [default: hopper-bench on the local server].
+    #[arg(long)]
+    policy: Option<String>,
+    /// Concurrent sessions.
+    #[arg(long, default_value_t = 1)]
+    sessions: usize,
+    /// How long to measure, e.g. "10s" (ignored with --steps).
+    #[arg(long, value_parser = humantime::parse_duration, default_value = "5s")]
+    duration: Duration,
+    /// Total steps to measure instead of a duration.
+    #[arg(long)]
+    steps: Option<u64>,
+    /// Unmeasured warm-up before measuring.
+    #[arg(long, value_parser = humantime::parse_duration, default_value = "500ms")]
+    warmup: Duration,
+    #[arg(long, value_enum, default_value_t = Mode::Stream)]
+    mode: Mode,
+    /// Open loop: total requests per second, spread evenly over the sessions; latency counts from
+    /// each request's scheduled time. 0: closed loop.
+    #[arg(long, default_value_t = 0.0)]
+    rate: f64,
+    /// eps coefficient of the sessions (eps = coef x (V_pi - V_rand)).
+    #[arg(long, default_value_t = 0.005)]
+    epsilon_coef: f64,
+    /// Absolute eps instead of a coefficient.
+    #[arg(long)]
+    epsilon: Option<f64>,
+    /// Plan cap of the sessions (1 with --epsilon 0: one-step policy serving).
+    #[arg(long, default_value_t = 32)]
+    max_horizon: u32,
+    /// Observations: a safetensors file with an `obs` array [N, obs_dim] (as written by
+    /// `python -m prac_client.record`). Default: states visited by running the policy on its own
+    /// model (the server's predicted observations, with noise), recorded before measuring.
+    #[arg(long)]
+    observations: Option<PathBuf>,
+    /// The prac binary for the local server [default: next to prac-bench].
+    #[arg(long)]
+    prac_bin: Option<PathBuf>,
+    /// Extra flag for the local server, e.g. --server-arg=--batch-max=0 (repeatable).
+    #[arg(long, allow_hyphen_values = true)]
+    server_arg: Vec<String>,
+    /// Print the report as JSON.
+    #[arg(long)]
+    json: bool,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+}
+
+#[derive(Serialize)]
+struct Report {
+    mode: Mode,
+    sessions: usize,
+    open_loop_rate: Option<f64>,
+    seconds: f64,
+    steps: u64,
+    throughput: f64,
+    latency_us: Latency,
+    errors: BTreeMap<String, u64>,
+    mean_forecast: f64,
+    replans_per_step: f64,
+    mean_plan_length: f64,
+}
+
+#[derive(Serialize)]
+struct Latency {
+    p50: f64,
+    p90: f64,
+    p99: f64,
+    p999: f64,
+    max: f64,
+    mean: f64,
+}
+
+/// What the sessions measured.
+struct Tally {
+    latency: Histogram<u64>,
+    errors: BTreeMap<String, u64>,
+    f_t: u64,
+    replans: u64,
+    plan_length: u64,
+    steps: u64,
+}
+
+impl Tally {
+    fn new() -> Tally {
+        Tally {
+            latency: Histogram::new_with_bounds(1, 60_000_000, 3).expect("histogram bounds"),
+            errors: BTreeMap::new(),
+            f_t: 0,
+            replans: 0,
+            plan_length: 0,
+            steps: 0,
+        }
+    }
+    fn record(&mut self, latency: Duration, result: Result<&proto::StepResponse, &tonic::Status>) {
+        match result {
+            Ok(r) => {
+                self.steps += 1;
+                self.latency
+                    .saturating_record((latency.as_micros() as u64).max(1));
+                self.f_t += r.f_t;
+                self.replans += u64::from(r.broke_at.is_some());
+                self.plan_length += r.forecast.len() as u64;
+            }
+            Err(status) => {
+                *self
+                    .errors
+                    .entry(format!("{:?}", status.code()))
+                    .or_default() += 1;
+            }
+        }
+    }
+    fn merge(&mut self, other: &Tally) {
+        self.latency
+            .add(&other.latency)
+            .expect("same histogram bounds");
+        for (k, v) in &other.errors {
+            *self.errors.entry(k.clone()).or_default() += v;
+        }
+        self.f_t += other.f_t;
+        self.replans += other.replans;
+        self.plan_length += other.plan_length;
+        self.steps += other.steps;
+    }
+}
+
+/// When measuring stops.
+#[derive(Clone)]
+struct Budget {
+    start: Instant,
+    measure_from: Instant,
+    until: Instant,
+    steps_left: Option<Arc<std::sync::atomic::AtomicI64>>,
+}
+
+impl Budget {
+    fn measuring(&self, now: Instant) -> bool {
+        now >= self.measure_from
+    }
+    /// Takes one step from the budget; false when the run is over.
+    fn take(&self, now: Instant) -> bool {
+        if now >= self.until {
+            return false;
+        }
+        match &self.steps_left {
+            Some(left) if now >= self.measure_from => {
+                left.fetch_sub(1, std::sync::atomic::Ordering::Relaxed) > 0
+            }
+            _ => true,
+        }
+    }
+}
+
+struct LocalServer {
+    child: tokio::process::Child,
+    _dir: tempfile::TempDir,
+}
+
+async fn start_local_server(args: &Args) -> anyhow::Result<(String, LocalServer)> {
+    let dir = tempfile::tempdir()?;
+    let policy = prac::policy::Policy::random(prac::policy::hopper_sized_manifest(), 7);
+    prac::bundle::save(&policy, &dir.path().join("hopper-bench.safetensors"))?;
+    let bin = match &args.prac_bin {
+        Some(bin) => bin.clone(),
+        None => std::env::current_exe()?
+            .parent()
+            .context("prac-bench has no folder")?
+            .join("prac"),
+    };
+    let mut child = tokio::process::Command::new(&bin)
+        .args(["serve", "--listen", "127.0.0.1:0", "--bundles"])
+        .arg(dir.path())
+        .args(&args.server_arg)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .kill_on_drop(true)
+        .spawn()
+        .with_context(|| {
+            format!(
+                "starting {} (build it: cargo build --release)",
+                bin.display()
+            )
+        })?;
+    let stdout = child.stdout.take().context("server stdout")?;
+    let mut line = String::new();
+    BufReader::new(stdout).read_line(&mut line).await?;
+    let Some(addr) = line.trim().strip_prefix("listening on ") else {
+        bail!("the local server did not start: {line:?}");
+    };
+    Ok((addr.to_string(), LocalServer { child, _dir: dir }))
+}
+
+async fn connect(addr: &str) -> anyhow::Result<PracClient<Channel>> {
+    let channel = Channel::from_shared(format!("http://{addr}"))?
+        .tcp_nodelay(true)
+        .connect()
+        .await?;
+    Ok(PracClient::new(channel))
+}
+
+fn session_options(args: &Args) -> proto::SessionOptions {
+    proto::SessionOptions {
+        tolerance: Some(match args.epsilon {
+            Some(e) => Tolerance::Epsilon(e),
+            None => Tolerance::EpsilonCoef(args.epsilon_coef),
+        }),
+        growth: None,
+        max_horizon: args.max_horizon,
+        sampled: false,
+        seed: 0,
+    }
+}
+
+async fn open(
+    client: &mut PracClient<Channel>,
+    policy: &str,
+    args: &Args,
+) -> anyhow::Result<String> {
+    let opened = client
+        .open_session(proto::OpenSessionRequest {
+            policy: policy.to_string(),
+            options: Some(session_options(args)),
+        })
+        .await
+        .context("OpenSession")?;
+    Ok(opened.into_inner().session_id)
+}
+
+/// Observations to send: from a file, or recorded by following the server's predictions.
+async fn observations(
+    args: &Args,
+    client: &mut PracClient<Channel>,
+    policy: &str,
+    obs_dim: usize,
+) -> anyhow::Result<Vec<Vec<f32>>> {
+    if let Some(path) = &args.observations {
+        let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+        let tensors = safetensors::SafeTensors::deserialize(&bytes)?;
+        let obs = tensors.tensor("obs").context("no `obs` tensor")?;
+        if obs.dtype() != safetensors::Dtype::F32
+            || obs.shape().len() != 2
+            || obs.shape()[1] != obs_dim
+        {
+            bail!(
+                "`obs` must be f32 [N, {obs_dim}], is {:?} {:?}",
+                obs.dtype(),
+                obs.shape()
+            );
+        }
+        let values: Vec<f32> = obs
+            .data()
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        return Ok(values.chunks(obs_dim).map(<[f32]>::to_vec).collect());
+    }
+    let session = open(client, policy, args).await?;
+    let mut rng = ChaCha8Rng::seed_from_u64(args.seed);
+    let mut obs: Vec<f32> = (0..obs_dim).map(|_| rng.random_range(-0.5..0.5)).collect();
+    let mut visited = Vec::new();
+    for i in 0..2000 {
+        let r = client
+            .step(proto::StepRequest {
+                session_id: session.clone(),
+                observation: obs.clone(),
+                new_episode: i % 200 == 0,
+            })
+            .await?
+            .into_inner();
+        visited.push(obs.clone());
+        obs = r.forecast[0]
+            .predicted_observation
+            .iter()
+            .map(|v| (v + rng.random_range(-0.02..0.02)).clamp(-5.0, 5.0))
+            .collect();
+        if i % 200 == 199 {
+            obs = (0..obs_dim).map(|_| rng.random_range(-0.5..0.5)).collect();
+        }
+    }
+    client
+        .close_session(proto::CloseSessionRequest {
+            session_id: session,
+        })
+        .await?;
+    Ok(visited)
+}
+
+fn request(session: &str, states: &[Vec<f32>], i: usize) -> proto::StepRequest {
+    proto::StepRequest {
+        session_id: session.to_string(),
+        observation: states[i % states.len()].clone(),
+        new_episode: i == 0,
+    }
+}
+
+/// One session's load; returns what it measured.
+async fn run_session(
+    mut client: PracClient<Channel>,
+    session: String,
+    states: Arc<Vec<Vec<f32>>>,
+    offset: usize,
+    mode: Mode,
+    interval: Option<Duration>,
+    budget: Budget,
+) -> Tally {
+    let mut tally = Tally::new();
+    match (mode, interval) {
+        (Mode::Unary, None) => {
+            let mut i = 0;
+            while budget.take(Instant::now()) {
+                let sent = Instant::now();
+                let r = client.step(request(&session, &states, offset + i)).await;
+                if budget.measuring(sent) {
+                    tally.record(sent.elapsed(), r.as_ref().map(|r| r.get_ref()));
+                }
+                i += 1;
+            }
+        }
+        (Mode::Stream, None) => {
+            let (tx, rx) = mpsc::channel(1);
+            let mut responses = match client.step_stream(ReceiverStream::new(rx)).await {
+                Ok(r) => r.into_inner(),
+                Err(status) => {
+                    tally.record(Duration::ZERO, Err(&status));
+                    return tally;
+                }
+            };
+            let mut i = 0;
+            while budget.take(Instant::now()) {
+                let sent = Instant::now();
+                if tx
+                    .send(request(&session, &states, offset + i))
+                    .await
+                    .is_err()
+                {
+                    break;
+                }
+                let r = responses.message().await;
+                let r = match r {
+                    Ok(Some(r)) => Ok(r),
+                    Ok(None) => break,
+                    Err(status) => Err(status),
+                };
+                if budget.measuring(sent) {
+                    tally.record(sent.elapsed(), r.as_ref());
+                }
+                if r.is_err() {
+                    break;
+                }
+                i += 1;
+            }
+        }
+        (Mode::Unary, Some(interval)) => {
+            let tally = Arc::new(Mutex::new(tally));
+            let mut calls = Vec::new();
+            let mut next = budget.start;
+            let mut i = 0;
+            while budget.take(next) {
+                tokio::time::sleep_until(next.into()).await;
+                let (mut client, session, states, tally, budget) = (
+                    client.clone(),
+                    session.clone(),
+                    states.clone(),
+                    tally.clone(),
+                    budget.clone(),
+                );
+                let scheduled = next;
+                calls.push(tokio::spawn(async move {
+                    let r = client.step(request(&session, &states, offset + i)).await;
+                    if budget.measuring(scheduled) {
+                        tally
+                            .lock()
+                            .await
+                            .record(scheduled.elapsed(), r.as_ref().map(|r| r.get_ref()));
+                    }
+                }));
+                next += interval;
+                i += 1;
+            }
+            for call in calls {
+                let _ = call.await;
+            }
+            return Arc::try_unwrap(tally)
+                .map(Mutex::into_inner)
+                .unwrap_or_else(|_| Tally::new());
+        }
+        (Mode::Stream, Some(interval)) => {
+            let (tx, rx) = mpsc::channel(1024);
+            let mut responses = match client.step_stream(ReceiverStream::new(rx)).await {
+                Ok(r) => r.into_inner(),
+                Err(status) => {
+                    tally.record(Duration::ZERO, Err(&status));
+                    return tally;
+                }
+            };
+            let scheduled = Arc::new(Mutex::new(VecDeque::new()));
+            let sender = {
+                let (scheduled, budget, session, states) = (
+                    scheduled.clone(),
+                    budget.clone(),
+                    session.clone(),
+                    states.clone(),
+                );
+                tokio::spawn(async move {
+                    let mut next = budget.start;
+                    let mut i = 0;
+                    while budget.take(next) {
+                        tokio::time::sleep_until(next.into()).await;
+                        scheduled.lock().await.push_back(next);
+                        if tx
+                            .send(request(&session, &states, offset + i))
+                            .await
+                            .is_err()
+                        {
+                            break;
+                        }
+                        next += interval;
+                        i += 1;
+                    }
+                })
+            };
+            loop {
+                let r = match responses.message().await {
+                    Ok(Some(r)) => Ok(r),
+                    Ok(None) => break,
+                    Err(status) => Err(status),
+                };
+                let Some(at) = scheduled.lock().await.pop_front() else {
+                    break;
+                };
+                if budget.measuring(at) {
+                    tally.record(at.elapsed(), r.as_ref());
+                }
+                if r.is_err() {
+                    break;
+                }
+            }
+            let _ = sender.await;
+        }
+    }
+    tally
+}
+
+async fn run(args: Args) -> anyhow::Result<Report> {
+    let (addr, local) = match &args.server {
+        Some(addr) => (addr.clone(), None),
+        None => {
+            let (addr, server) = start_local_server(&args).await?;
+            (addr, Some(server))
+        }
+    };
+    let policy = args
+        .policy
+        .clone()
+        .unwrap_or_else(|| "hopper-bench".to_string());
+    let mut client = connect(&addr).await?;
+    // The local server loads its bundle after it binds: wait until the policy is listed.
+    let deadline = Instant::now() + Duration::from_secs(20);
+    let info = loop {
+        let listed = client.list_policies(proto::ListPoliciesRequest {}).await;
+        if let Ok(listed) = listed
+            && let Some(p) = listed
+                .into_inner()
+                .policies
+                .into_iter()
+                .find(|p| p.name == policy)
+        {
+            break p;
+        }
+        if Instant::now() > deadline {
+            bail!("policy '{policy}' is not served at {addr}");
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+    let states = Arc::new(observations(&args, &mut client, &policy, info.obs_dim as usize).await?);
+
+    // Sessions the server refuses (e.g. over its session cap) are counted as errors, not fatal.
+    let mut total = Tally::new();
+    let mut sessions = Vec::new();
+    for _ in 0..args.sessions {
+        let mut client = connect(&addr).await?;
+        let opened = client
+            .open_session(proto::OpenSessionRequest {
+                policy: policy.clone(),
+                options: Some(session_options(&args)),
+            })
+            .await;
+        match opened {
+            Ok(opened) => sessions.push((client, opened.into_inner().session_id)),
+            Err(status) => {
+                *total
+                    .errors
+                    .entry(format!("OpenSession {:?}", status.code()))
+                    .or_default() += 1;
+            }
+        }
+    }
+    let start = Instant::now();
+    let measure_from = start + args.warmup;
+    let until = match args.steps {
+        // A hard deadline even when counting steps: the run always stops by itself.
+        Some(_) => measure_from + Duration::from_secs(600),
+        None => measure_from + args.duration,
+    };
+    let budget = Budget {
+        start,
+        measure_from,
+        until,
+        steps_left: args
+            .steps
+            .map(|n| Arc::new(std::sync::atomic::AtomicI64::new(n as i64))),
+    };
+    let interval =
+        (args.rate > 0.0).then(|| Duration::from_secs_f64(args.sessions as f64 / args.rate));
+    let mut tasks = Vec::new();
+    for (k, (client, id)) in sessions.iter().enumerate() {
+        tasks.push(tokio::spawn(run_session(
+            client.clone(),
+            id.clone(),
+            states.clone(),
+            k * 997,
+            args.mode,
+            interval,
+            budget.clone(),
+        )));
+    }
+    for task in tasks {
+        total.merge(&task.await?);
+    }
+    let seconds = measure_from.elapsed().as_secs_f64().min(
+        until
+            .saturating_duration_since(measure_from)
+            .as_secs_f64()
+            .max(f64::MIN_POSITIVE),
+    );
+    for (mut client, id) in sessions {
+        let _ = client
+            .close_session(proto::CloseSessionRequest { session_id: id })
+            .await;
+    }
+    if let Some(mut server) = local {
+        let _ = server.child.start_kill();
+        let _ = server.child.wait().await;
+    }
+    let steps = total.steps.max(1) as f64;
+    let q = |p: f64| total.latency.value_at_quantile(p) as f64;
+    Ok(Report {
+        mode: args.mode,
+        sessions: args.sessions,
+        open_loop_rate: interval.map(|_| args.rate),
+        seconds,
+        steps: total.steps,
+        throughput: total.steps as f64 / seconds,
+        latency_us: Latency {
+            p50: q(0.5),
+            p90: q(0.9),
+            p99: q(0.99),
+            p999: q(0.999),
+            max: total.latency.max() as f64,
+            mean: total.latency.mean(),
+        },
+        errors: total.errors,
+        mean_forecast: total.f_t as f64 / steps,
+        replans_per_step: total.replans as f64 / steps,
+        mean_plan_length: total.plan_length as f64 / steps,
+    })
+}
+
+fn main() -> std::process::ExitCode {
+    let args = Args::parse();
+    let json = args.json;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .expect("tokio runtime");
+    match runtime.block_on(run(args)) {
+        Ok(report) if json => {
+            println!(
+                "{}",
+                serde_json::to_string_pretty(&report).expect("report serialises")
+            );
+            std::process::ExitCode::SUCCESS
+        }
+        Ok(r) => {
+            let loop_kind = match r.open_loop_rate {
+                Some(rate) => format!("open loop at {rate} req/s"),
+                None => "closed loop".to_string(),
+            };
+            println!(
+                "{} sessions, {:?}, {loop_kind}: {} steps in {:.2} s",
+                r.sessions, r.mode, r.steps, r.seconds
+            );
+            println!("throughput   {:.0} steps/s", r.throughput);
+            let l = &r.latency_us;
+            println!(
+                "latency us   p50 {:.0}  p90 {:.0}  p99 {:.0}  p99.9 {:.0}  max {:.0}  mean {:.0}",
+                l.p50, l.p90, l.p99, l.p999, l.max, l.mean
+            );
+            println!(
+                "forecast     mean f_t {:.2}, plan length {:.2}, replans per step {:.3}",
+                r.mean_forecast, r.mean_plan_length, r.replans_per_step
+            );
+            if r.errors.is_empty() {
+                println!("errors       none");
+            } else {
+                println!("errors       {:?}", r.errors);
+            }
+            std::process::ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
