@@ -61,7 +61,7 @@ pub struct ServeArgs {
     /// [default: 4096].
     #[arg(long)]
     pub batch_queue: Option<usize>,
-    /// Batch worker threads [default: 1].
+    /// Batch worker threads [default: 2].
     #[arg(long)]
     pub batch_workers: Option<usize>,
 }
@@ -121,7 +121,7 @@ impl Default for ServeConfig {
                 max_batch: 64,
                 window: Duration::ZERO,
                 queue: 4096,
-                workers: 1,
+                workers: 2,
             }),
         }
     }

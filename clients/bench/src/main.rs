@@ -57,8 +57,9 @@ struct Args {
     warmup: Duration,
     #[arg(long, value_enum, default_value_t = Mode::Stream)]
     mode: Mode,
-    /// Open loop: total requests per second, spread evenly over the sessions; latency counts from
-    /// each request's scheduled time. 0: closed loop.
+    /// Open loop: total requests per second, spread evenly over the sessions; requests are sent
+    /// on schedule (tokio's timer: about 1 ms resolution) whether or not answers came back, and
+    /// latency counts from each send. 0: closed loop.
     #[arg(long, default_value_t = 0.0)]
     rate: f64,
     /// eps coefficient of the sessions (eps = coef x (V_pi - V_rand)).
@@ -335,16 +336,30 @@ fn request(session: &str, states: &[Vec<f32>], i: usize) -> proto::StepRequest {
     }
 }
 
+/// How a session sends its steps.
+#[derive(Clone, Copy)]
+struct Pace {
+    mode: Mode,
+    /// Open loop: time between this session's requests; None for closed loop.
+    interval: Option<Duration>,
+    /// Open loop: where in the interval this session's requests fall (sessions are spread out).
+    phase: Duration,
+}
+
 /// One session's load; returns what it measured.
 async fn run_session(
     mut client: PracClient<Channel>,
     session: String,
     states: Arc<Vec<Vec<f32>>>,
     offset: usize,
-    mode: Mode,
-    interval: Option<Duration>,
+    pace: Pace,
     budget: Budget,
 ) -> Tally {
+    let Pace {
+        mode,
+        interval,
+        phase,
+    } = pace;
     let mut tally = Tally::new();
     match (mode, interval) {
         (Mode::Unary, None) => {
@@ -395,7 +410,7 @@ async fn run_session(
         (Mode::Unary, Some(interval)) => {
             let tally = Arc::new(Mutex::new(tally));
             let mut calls = Vec::new();
-            let mut next = budget.start;
+            let mut next = budget.start + phase;
             let mut i = 0;
             while budget.take(next) {
                 tokio::time::sleep_until(next.into()).await;
@@ -406,14 +421,14 @@ async fn run_session(
                     tally.clone(),
                     budget.clone(),
                 );
-                let scheduled = next;
                 calls.push(tokio::spawn(async move {
+                    let sent = Instant::now();
                     let r = client.step(request(&session, &states, offset + i)).await;
-                    if budget.measuring(scheduled) {
+                    if budget.measuring(sent) {
                         tally
                             .lock()
                             .await
-                            .record(scheduled.elapsed(), r.as_ref().map(|r| r.get_ref()));
+                            .record(sent.elapsed(), r.as_ref().map(|r| r.get_ref()));
                     }
                 }));
                 next += interval;
@@ -444,11 +459,11 @@ async fn run_session(
                     states.clone(),
                 );
                 tokio::spawn(async move {
-                    let mut next = budget.start;
+                    let mut next = budget.start + phase;
                     let mut i = 0;
                     while budget.take(next) {
                         tokio::time::sleep_until(next.into()).await;
-                        scheduled.lock().await.push_back(next);
+                        scheduled.lock().await.push_back(Instant::now());
                         if tx
                             .send(request(&session, &states, offset + i))
                             .await
@@ -561,8 +576,13 @@ async fn run(args: Args) -> anyhow::Result<Report> {
             id.clone(),
             states.clone(),
             k * 997,
-            args.mode,
-            interval,
+            Pace {
+                mode: args.mode,
+                interval,
+                phase: interval.map_or(Duration::ZERO, |i| {
+                    i.mul_f64(k as f64 / args.sessions as f64)
+                }),
+            },
             budget.clone(),
         )));
     }
