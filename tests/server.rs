@@ -889,3 +889,35 @@ async fn a_full_batch_queue_is_answered_with_resource_exhausted() {
             .unwrap();
     }
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_step_whose_caller_gave_up_is_not_applied() {
+    let dir = bundle_dir();
+    // A long window holds each step in the worker long enough for its caller to give up.
+    let server = Server::start(dir.path(), &["--batch-window", "300ms"]);
+    server.wait_serving().await;
+    let mut client = server.client().await;
+    let session = open(&mut client, options(None, None, 0)).await;
+    let first = client
+        .step(step_request(&session, vec![0.0; 3], false))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(first.step, 0);
+    let abandoned = tokio::time::timeout(
+        Duration::from_millis(50),
+        client.step(step_request(&session, vec![0.1; 3], false)),
+    )
+    .await;
+    assert!(abandoned.is_err(), "the caller gave up");
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let next = client
+        .step(step_request(&session, vec![0.1; 3], false))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(
+        next.step, 1,
+        "the abandoned step must not have moved the session"
+    );
+}

@@ -88,6 +88,7 @@ impl Dense {
 
 /// `outputs[k] += W inputs[k]`, W column-major [out, inp], for CPUs without AVX2: each weight
 /// column is loaded once per block of rows and added into the block's outputs, which stay in L1.
+/// The same fused multiply-add chain as the SIMD kernels, so every machine gives the same bits.
 fn accumulate(weights: &[f32], out: usize, inp: usize, inputs: &[f32], outputs: &mut [f32]) {
     let n = inputs.len() / inp;
     for block in (0..n).step_by(BLOCK_ROWS) {
@@ -95,12 +96,9 @@ fn accumulate(weights: &[f32], out: usize, inp: usize, inputs: &[f32], outputs: 
         for (j, column) in weights.chunks_exact(out).enumerate() {
             for k in rows.clone() {
                 let x = inputs[k * inp + j];
-                if x == 0.0 {
-                    continue;
-                }
                 let y = &mut outputs[k * out..(k + 1) * out];
                 for (y, &w) in y.iter_mut().zip(column) {
-                    *y += w * x;
+                    *y = w.mul_add(x, *y);
                 }
             }
         }

@@ -14,6 +14,8 @@ struct ClosedForm {
     model_bias: f32,
     /// Makes the model return NaN.
     broken_model: bool,
+    /// The model returns NaN from states whose first value exceeds this (a failure part-way).
+    nan_above: f32,
 }
 
 impl ClosedForm {
@@ -21,6 +23,7 @@ impl ClosedForm {
         ClosedForm {
             model_bias: 0.0,
             broken_model: false,
+            nan_above: f32::INFINITY,
         }
     }
     fn mean_action(obs: &[f32]) -> f32 {
@@ -64,6 +67,9 @@ impl Networks for ClosedForm {
             } else {
                 n[0] + self.model_bias
             };
+            if obs[k * OBS] > self.nan_above {
+                next_obs[k * OBS] = f32::NAN;
+            }
             next_obs[k * OBS + 1] = n[1] + self.model_bias;
         }
     }
@@ -176,6 +182,7 @@ fn huge_eps_never_breaks_and_grows_by_k_minus_1_to_the_cap() {
             ClosedForm {
                 model_bias: 0.5,
                 broken_model: false,
+                nan_above: f32::INFINITY,
             },
             huge_eps(Growth::Grow(k), cap),
             1,
@@ -202,6 +209,7 @@ fn fixed_mode_refills_to_n() {
         ClosedForm {
             model_bias: 0.3,
             broken_model: false,
+            nan_above: f32::INFINITY,
         },
         huge_eps(Growth::Fixed(n), 32),
         2,
@@ -294,6 +302,7 @@ fn forecast_f_t_over_an_episode() {
         ClosedForm {
             model_bias: 0.2,
             broken_model: false,
+            nan_above: f32::INFINITY,
         },
         ReplanConfig::default(),
         3,
@@ -353,6 +362,7 @@ fn a_non_finite_model_is_an_error_not_a_plan() {
     let mut nets = ClosedForm {
         model_bias: 0.0,
         broken_model: true,
+        nan_above: f32::INFINITY,
     };
     let mut new = Plan::with_capacity(OBS, ACT, 4);
     let err = replan(
@@ -415,6 +425,7 @@ fn a_batch_gives_each_session_what_it_gets_alone() {
     let mut nets = ClosedForm {
         model_bias: 0.01,
         broken_model: false,
+        nan_above: f32::INFINITY,
     };
     let alone: Vec<(Result<ReplanOutcome, NonFinite>, Plan)> = (0..configs.len())
         .map(|i| {
@@ -479,7 +490,8 @@ fn reference_replan(
     old: PlanView<'_>,
     new: &mut Plan,
     rng: &mut ChaCha8Rng,
-) -> ReplanOutcome {
+) -> Result<ReplanOutcome, NonFinite> {
+    let err = |what, index| Err(NonFinite { what, index });
     let draw = |rng: &mut ChaCha8Rng| -> f32 {
         if config.sampled {
             rng.sample(StandardNormal)
@@ -495,13 +507,22 @@ fn reference_replan(
     for j in 0..old.len().min(config.max_horizon) {
         let z = [draw(rng)];
         nets.act(&s, &z, &mut pi);
+        if !pi[0].is_finite() {
+            return err("actor", j);
+        }
         let (mut q_pi, mut q_a) = ([0.0], [0.0]);
         nets.q_pair(&s, &pi, old.action(j), &mut q_pi, &mut q_a);
+        if !q_pi[0].is_finite() || !q_a[0].is_finite() {
+            return err("critic", j);
+        }
         if q_a[0] + config.epsilon < q_pi[0] {
             broke_at = Some(j);
             break;
         }
         nets.predict_next(&s, old.action(j), &mut next);
+        if !next.iter().all(|v| v.is_finite()) {
+            return err("model", j);
+        }
         new.push(old.action(j), &next, old.decided_at(j));
         s.copy_from_slice(&next);
     }
@@ -515,23 +536,30 @@ fn reference_replan(
         if !(m == 0 && broke_at.is_some()) {
             let z = [draw(rng)];
             nets.act(&s, &z, &mut pi);
+            if !pi[0].is_finite() {
+                return err("actor", kept + m);
+            }
         }
         nets.predict_next(&s, &pi, &mut next);
+        if !next.iter().all(|v| v.is_finite()) {
+            return err("model", kept + m);
+        }
         new.push(&pi, &next, step);
         s.copy_from_slice(&next);
     }
-    ReplanOutcome {
+    Ok(ReplanOutcome {
         kept,
         broke_at,
         appended: wanted,
-    }
+    })
 }
 
 #[test]
 fn chunked_batched_replan_matches_the_plain_algorithm() {
     use rand::Rng;
     let mut scenario = ChaCha8Rng::seed_from_u64(42);
-    for case in 0..300 {
+    let mut errors = 0;
+    for case in 0..400 {
         let config = ReplanConfig {
             epsilon: [0.0, 1e-4, 1e-3, 0.01, 0.1, 1e9][case % 6],
             growth: if case % 3 == 0 {
@@ -545,6 +573,12 @@ fn chunked_batched_replan_matches_the_plain_algorithm() {
         let mut nets = ClosedForm {
             model_bias: scenario.random_range(-0.02..0.02),
             broken_model: false,
+            // Every fourth case: the model fails part-way through the rollout.
+            nan_above: if case % 4 == 3 {
+                scenario.random_range(-0.5..1.0)
+            } else {
+                f32::INFINITY
+            },
         };
         let state = [
             scenario.random_range(-1.0..1.0),
@@ -578,9 +612,17 @@ fn chunked_batched_replan_matches_the_plain_algorithm() {
             &mut ReplanScratch::new(OBS, ACT),
             &mut rng_b,
         );
-        assert_eq!(result, Ok(outcome), "case {case} {config:?}");
+        assert_eq!(result, outcome, "case {case} {config:?}");
+        if outcome.is_err() {
+            errors += 1;
+            continue;
+        }
         assert_eq!(got, expected, "case {case}");
         // The same draws were taken from the rng.
         assert_eq!(rng_a.random::<u64>(), rng_b.random::<u64>(), "case {case}");
     }
+    assert!(
+        errors > 10,
+        "model failures part-way were exercised: {errors}"
+    );
 }

@@ -1,7 +1,8 @@
-//! Cross-session dynamic batching: steps from all sessions go through one bounded queue to
-//! worker threads, which take what is queued (waiting up to the batch window for more), and
-//! replan each policy's sessions together with [`replan_batch`] so that every network evaluation
-//! is a matrix product over the batch. A full queue is answered at once with RESOURCE_EXHAUSTED.
+//! Cross-session dynamic batching: steps go through bounded queues to worker threads, which take
+//! what is queued (waiting up to the batch window for more) and replan each policy's sessions
+//! together with [`replan_batch`], so that every network evaluation is a matrix product over the
+//! batch. A session always goes to the same worker, so its steps are replanned in the order they
+//! came. A full queue is answered at once with RESOURCE_EXHAUSTED.
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -34,27 +35,31 @@ struct Work {
     reply: oneshot::Sender<Result<proto::StepResponse, Status>>,
 }
 
-/// The submitting side of the batch queue.
+/// The submitting side of the batch queues.
 #[derive(Clone)]
 pub struct Batcher {
-    queue: Sender<Work>,
+    queues: Vec<Sender<Work>>,
     capacity: usize,
 }
 
 impl Batcher {
-    /// Starts the worker threads; they stop when every `Batcher` clone is dropped.
+    /// Starts the worker threads, each with its share of the queue; they stop when every
+    /// `Batcher` clone is dropped.
     pub fn start(config: BatchConfig) -> Batcher {
-        let (queue, receiver) = crossbeam_channel::bounded(config.queue.max(1));
-        for i in 0..config.workers.max(1) {
-            let receiver = receiver.clone();
+        let workers = config.workers.max(1);
+        let per_worker = config.queue.div_ceil(workers).max(1);
+        let mut queues = Vec::with_capacity(workers);
+        for i in 0..workers {
+            let (queue, receiver) = crossbeam_channel::bounded(per_worker);
+            queues.push(queue);
             std::thread::Builder::new()
                 .name(format!("prac-batch-{i}"))
                 .spawn(move || Worker::new(config).run(&receiver))
                 .expect("spawning a batch worker thread");
         }
         Batcher {
-            queue,
-            capacity: config.queue.max(1),
+            queues,
+            capacity: per_worker,
         }
     }
 
@@ -65,16 +70,20 @@ impl Batcher {
         request: proto::StepRequest,
     ) -> Result<proto::StepResponse, Status> {
         let (reply, answer) = oneshot::channel();
+        // One worker per session keeps its steps in order.
+        let worker =
+            (Arc::as_ptr(&slot) as usize / std::mem::align_of::<SessionSlot>()) % self.queues.len();
         let work = Work {
             slot,
             request,
             reply,
         };
-        match self.queue.try_send(work) {
+        match self.queues[worker].try_send(work) {
             Ok(()) => {}
             Err(TrySendError::Full(_)) => {
                 return Err(Status::resource_exhausted(format!(
-                    "overloaded: {} steps are already queued; retry later or use fewer sessions",
+                    "overloaded: {} steps are already queued for this session's batch worker; \
+                     retry later or use fewer sessions",
                     self.capacity
                 )));
             }
@@ -124,7 +133,18 @@ impl Worker {
             // A session twice in one batch (two streams on one session) goes in order: its
             // later steps wait for the next round.
             while !batch.is_empty() {
-                self.process(&mut batch, &mut deferred);
+                // A bug must not take the worker down: the batch's callers get INTERNAL (their
+                // reply channels drop) and the worker goes on.
+                let processed = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                    self.process(&mut batch, &mut deferred)
+                }));
+                if processed.is_err() {
+                    tracing::error!("a batch worker panicked; its batch was dropped");
+                    batch.clear();
+                    deferred.clear();
+                    self.scratch = ReplanScratch::default();
+                    self.evaluators.clear();
+                }
                 std::mem::swap(&mut batch, &mut deferred);
             }
         }
@@ -134,6 +154,11 @@ impl Worker {
         // Group by policy: one replan_batch per policy.
         let mut groups: HashMap<*const Policy, Vec<Work>> = HashMap::new();
         for work in batch.drain(..) {
+            // The caller gave up (deadline, cancel): applying its step would move the session
+            // on behind its back.
+            if work.reply.is_closed() {
+                continue;
+            }
             let policy = Arc::as_ptr(&work.slot.policy);
             groups.entry(policy).or_default().push(work);
         }
