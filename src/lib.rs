@@ -5,10 +5,12 @@
 //! - [`policy`]: a loaded policy's networks and the per-session evaluator.
 //! - [`plan`]: Replan (Algorithm 2), shared by serving and training.
 //! - [`serve`]: the gRPC daemon.
+//! - [`domains`]: the environments (task interface) for training and the simulator client.
 //! - [`cli`]: `prac inspect` and `prac bench-replan`.
 
 pub mod bundle;
 pub mod cli;
+pub mod domains;
 pub mod nn;
 pub mod plan;
 pub mod policy;

@@ -25,6 +25,23 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// The domains: name, obs and act dims, episode length, control period, physics engine.
+    Domains,
+    /// Env steps/s per domain under random actions (one thread), and random-policy returns.
+    BenchDomains {
+        /// Seconds of stepping per domain.
+        #[arg(long, default_value_t = 2.0)]
+        seconds: f64,
+        /// Random-policy episodes per domain.
+        #[arg(long, default_value_t = 100)]
+        episodes: usize,
+        /// Discount of the discounted returns.
+        #[arg(long, default_value_t = 0.98)]
+        gamma: f64,
+        /// Domains to measure [default: all].
+        #[arg(long, value_delimiter = ',')]
+        domains: Vec<String>,
+    },
     /// Microseconds per Replan for Hopper-sized networks at plan lengths 1, 8, 32, alone and
     /// batched across sessions, against the machine's matmul rate.
     BenchReplan {
@@ -46,6 +63,34 @@ fn main() -> ExitCode {
         Command::Serve(args) => serve(args),
         Command::Inspect { file, json } => {
             prac::cli::inspect::run(&file, json).map(|text| print!("{text}"))
+        }
+        Command::Domains => {
+            print!("{}", prac::cli::domains::table());
+            Ok(())
+        }
+        Command::BenchDomains {
+            seconds,
+            episodes,
+            gamma,
+            domains,
+        } => {
+            let names: Vec<&str> = if domains.is_empty() {
+                prac::domains::DOMAINS.to_vec()
+            } else {
+                domains.iter().map(String::as_str).collect()
+            };
+            prac::cli::domains::bench(
+                &names,
+                Duration::from_secs_f64(seconds),
+                episodes.max(1),
+                gamma,
+            )
+            .map(|rows| {
+                print!(
+                    "{}",
+                    prac::cli::domains::report(&rows, episodes.max(1), gamma)
+                )
+            })
         }
         Command::BenchReplan {
             seconds,

@@ -1,4 +1,5 @@
 //! Subcommands other than `serve`.
 
 pub mod bench;
+pub mod domains;
 pub mod inspect;

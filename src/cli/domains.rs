@@ -1,0 +1,128 @@
+//! `prac domains` (the table of domains) and `prac bench-domains` (env speed and random-policy
+//! returns).
+
+use std::time::{Duration, Instant};
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use crate::domains::{DOMAINS, make};
+
+pub fn table() -> String {
+    let mut out = format!(
+        "{:<10} {:>7} {:>7} {:>14} {:>8}  {}\n",
+        "name", "obs_dim", "act_dim", "episode_steps", "dt", "engine"
+    );
+    for name in DOMAINS {
+        let env = make(name).expect("listed domains exist");
+        let s = env.spec();
+        out.push_str(&format!(
+            "{:<10} {:>7} {:>7} {:>14} {:>8}  {}\n",
+            s.name, s.obs_dim, s.act_dim, s.episode_len, s.control_period, s.engine
+        ));
+    }
+    out
+}
+
+pub struct DomainBench {
+    pub name: &'static str,
+    pub steps_per_second: f64,
+    pub mean_return: f64,
+    pub std_return: f64,
+    pub mean_discounted: f64,
+    pub std_discounted: f64,
+}
+
+fn mean_std(values: &[f64]) -> (f64, f64) {
+    let n = values.len() as f64;
+    let mean = values.iter().sum::<f64>() / n;
+    let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
+    (mean, var.sqrt())
+}
+
+/// Steps/s under uniform random actions on one thread (for `per_domain`), then the returns of
+/// `episodes` random-policy episodes, undiscounted and discounted with `gamma`.
+pub fn bench(
+    names: &[&str],
+    per_domain: Duration,
+    episodes: usize,
+    gamma: f64,
+) -> anyhow::Result<Vec<DomainBench>> {
+    let mut rows = Vec::new();
+    for name in names {
+        let mut env = make(name).ok_or_else(|| anyhow::anyhow!("unknown domain '{name}'"))?;
+        let spec = env.spec().clone();
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let mut obs = vec![0.0; spec.obs_dim];
+        let mut action = vec![0.0; spec.act_dim];
+        let random = |rng: &mut ChaCha8Rng, action: &mut [f32]| {
+            for (i, a) in action.iter_mut().enumerate() {
+                *a = rng.random_range(spec.action_low[i]..=spec.action_high[i]);
+            }
+        };
+        env.reset(0, &mut obs)?;
+        let start = Instant::now();
+        let mut steps = 0u64;
+        let mut episode = 0;
+        while start.elapsed() < per_domain {
+            for _ in 0..256 {
+                random(&mut rng, &mut action);
+                let t = env.step(&action, &mut obs)?;
+                steps += 1;
+                if t.terminated || t.truncated {
+                    episode += 1;
+                    env.reset(episode, &mut obs)?;
+                }
+            }
+        }
+        let steps_per_second = steps as f64 / start.elapsed().as_secs_f64();
+        let (mut returns, mut discounted) = (Vec::new(), Vec::new());
+        for e in 0..episodes {
+            env.reset(1_000_000 + e as u64, &mut obs)?;
+            let (mut total, mut disc, mut weight) = (0.0, 0.0, 1.0);
+            loop {
+                random(&mut rng, &mut action);
+                let t = env.step(&action, &mut obs)?;
+                total += t.reward;
+                disc += weight * t.reward;
+                weight *= gamma;
+                if t.terminated || t.truncated {
+                    break;
+                }
+            }
+            returns.push(total);
+            discounted.push(disc);
+        }
+        let (mean_return, std_return) = mean_std(&returns);
+        let (mean_discounted, std_discounted) = mean_std(&discounted);
+        rows.push(DomainBench {
+            name: spec.name,
+            steps_per_second,
+            mean_return,
+            std_return,
+            mean_discounted,
+            std_discounted,
+        });
+    }
+    Ok(rows)
+}
+
+pub fn report(rows: &[DomainBench], episodes: usize, gamma: f64) -> String {
+    let mut out = format!(
+        "one thread, uniform random actions; returns over {episodes} episodes (discount {gamma})\n\
+         {:<10} {:>10} {:>20} {:>22}\n",
+        "domain", "steps/s", "return mean (std)", "discounted mean (std)"
+    );
+    for r in rows {
+        out.push_str(&format!(
+            "{:<10} {:>10.0} {:>12.1} ({:>6.1}) {:>14.2} ({:>6.2})\n",
+            r.name,
+            r.steps_per_second,
+            r.mean_return,
+            r.std_return,
+            r.mean_discounted,
+            r.std_discounted
+        ));
+    }
+    out
+}

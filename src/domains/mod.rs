@@ -1,0 +1,113 @@
+//! Environments (issue 3): the task interface shared by training and the simulator client.
+//! Domains so far: `pendulum` (gymnasium's Pendulum-v1, no physics engine).
+
+mod pendulum;
+
+pub use pendulum::Pendulum;
+
+/// What a domain is: sizes, bounds and episode length.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EnvSpec {
+    pub name: &'static str,
+    pub obs_dim: usize,
+    pub act_dim: usize,
+    /// Documented observation ranges (inclusive); observations never leave them.
+    pub obs_low: Vec<f32>,
+    pub obs_high: Vec<f32>,
+    /// Actions are clipped to these bounds.
+    pub action_low: Vec<f32>,
+    pub action_high: Vec<f32>,
+    /// Steps after which an episode is truncated.
+    pub episode_len: u32,
+    /// Seconds of simulated time per step.
+    pub control_period: f64,
+    /// "none" for closed-form dynamics, else the physics engine.
+    pub engine: &'static str,
+}
+
+/// The outcome of one step (the observation is written into the caller's buffer).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Transition {
+    pub reward: f64,
+    /// The task ended (failure or success); a new episode must start.
+    pub terminated: bool,
+    /// The episode hit its step limit.
+    pub truncated: bool,
+}
+
+/// A step the environment refuses; its state is unchanged.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum EnvError {
+    #[error("action has {got} values; {domain} expects {expected}")]
+    ActionLength {
+        domain: &'static str,
+        got: usize,
+        expected: usize,
+    },
+    #[error("action[{index}] is {value}; every value must be finite")]
+    NonFiniteAction { index: usize, value: f32 },
+    #[error("the episode is over; call reset first")]
+    EpisodeOver,
+    #[error("observation buffer has {got} values; {domain} writes {expected}")]
+    ObservationLength {
+        domain: &'static str,
+        got: usize,
+        expected: usize,
+    },
+}
+
+/// An episodic control task. `reset` and `step` write the observation into `obs` (obs_dim
+/// values), so stepping allocates nothing. The same seed and actions give bit-identical
+/// observations.
+pub trait Env: Send {
+    fn spec(&self) -> &EnvSpec;
+    fn reset(&mut self, seed: u64, obs: &mut [f32]) -> Result<(), EnvError>;
+    fn step(&mut self, action: &[f32], obs: &mut [f32]) -> Result<Transition, EnvError>;
+}
+
+/// Checks an action and returns it clipped to the bounds (into `clipped`).
+pub fn clip_action(spec: &EnvSpec, action: &[f32], clipped: &mut [f32]) -> Result<(), EnvError> {
+    if action.len() != spec.act_dim {
+        return Err(EnvError::ActionLength {
+            domain: spec.name,
+            got: action.len(),
+            expected: spec.act_dim,
+        });
+    }
+    if let Some(index) = action.iter().position(|v| !v.is_finite()) {
+        return Err(EnvError::NonFiniteAction {
+            index,
+            value: action[index],
+        });
+    }
+    for i in 0..action.len() {
+        clipped[i] = action[i].clamp(spec.action_low[i], spec.action_high[i]);
+    }
+    Ok(())
+}
+
+fn check_obs_len(spec: &EnvSpec, obs: &[f32]) -> Result<(), EnvError> {
+    if obs.len() == spec.obs_dim {
+        Ok(())
+    } else {
+        Err(EnvError::ObservationLength {
+            domain: spec.name,
+            got: obs.len(),
+            expected: spec.obs_dim,
+        })
+    }
+}
+
+/// Every domain's name.
+pub const DOMAINS: &[&str] = &["pendulum"];
+
+/// A new environment of the named domain.
+pub fn make(name: &str) -> Option<Box<dyn Env>> {
+    match name {
+        "pendulum" => Some(Box::new(Pendulum::new())),
+        _ => None,
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,159 @@
+use super::*;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// Plays `steps` uniform random actions from `seed`, resetting at episode ends; returns every
+/// observation and reward.
+fn rollout(name: &str, seed: u64, steps: usize) -> (Vec<f32>, Vec<f64>) {
+    let mut env = make(name).unwrap();
+    let spec = env.spec().clone();
+    let mut obs = vec![0.0; spec.obs_dim];
+    env.reset(seed, &mut obs).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0xabc);
+    let (mut all, mut rewards) = (obs.clone(), Vec::new());
+    let mut episode = 0;
+    for _ in 0..steps {
+        let action: Vec<f32> = (0..spec.act_dim)
+            .map(|i| rng.random_range(spec.action_low[i]..=spec.action_high[i]))
+            .collect();
+        let t = env.step(&action, &mut obs).unwrap();
+        all.extend_from_slice(&obs);
+        rewards.push(t.reward);
+        if t.terminated || t.truncated {
+            episode += 1;
+            env.reset(seed + episode, &mut obs).unwrap();
+            all.extend_from_slice(&obs);
+        }
+    }
+    (all, rewards)
+}
+
+#[test]
+fn same_seed_and_actions_give_bit_identical_observations() {
+    for name in DOMAINS {
+        let (a, ra) = rollout(name, 7, 1000);
+        let (b, rb) = rollout(name, 7, 1000);
+        assert!(
+            a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()),
+            "{name}"
+        );
+        assert_eq!(ra, rb, "{name}");
+        assert_ne!(a, rollout(name, 8, 1000).0, "{name}: seeds must matter");
+    }
+}
+
+#[test]
+fn random_play_stays_finite_and_inside_the_documented_ranges() {
+    for name in DOMAINS {
+        let spec = make(name).unwrap().spec().clone();
+        let (obs, rewards) = rollout(name, 3, 1000);
+        assert!(rewards.iter().all(|r| r.is_finite()), "{name}");
+        for (i, v) in obs.iter().enumerate() {
+            let d = i % spec.obs_dim;
+            assert!(
+                v.is_finite() && *v >= spec.obs_low[d] && *v <= spec.obs_high[d],
+                "{name}: obs[{d}] = {v}"
+            );
+        }
+    }
+}
+
+#[test]
+fn bad_actions_are_errors_and_change_nothing() {
+    for name in DOMAINS {
+        let mut env = make(name).unwrap();
+        let spec = env.spec().clone();
+        let mut obs = vec![0.0; spec.obs_dim];
+        assert!(matches!(
+            env.step(&vec![0.0; spec.act_dim], &mut obs),
+            Err(EnvError::EpisodeOver)
+        ));
+        env.reset(1, &mut obs).unwrap();
+        let wrong = vec![0.0; spec.act_dim + 1];
+        assert!(matches!(
+            env.step(&wrong, &mut obs),
+            Err(EnvError::ActionLength { .. })
+        ));
+        let mut nan = vec![0.0; spec.act_dim];
+        nan[0] = f32::NAN;
+        assert!(matches!(
+            env.step(&nan, &mut obs),
+            Err(EnvError::NonFiniteAction { index: 0, .. })
+        ));
+        assert!(matches!(
+            env.step(&vec![0.0; spec.act_dim], &mut [0.0; 1][..0]),
+            Err(EnvError::ObservationLength { .. })
+        ));
+        // The refused steps left no trace: the episode continues as a fresh one would.
+        let mut fresh = make(name).unwrap();
+        let mut fresh_obs = vec![0.0; spec.obs_dim];
+        fresh.reset(1, &mut fresh_obs).unwrap();
+        let zero = vec![0.0; spec.act_dim];
+        env.step(&zero, &mut obs).unwrap();
+        fresh.step(&zero, &mut fresh_obs).unwrap();
+        assert_eq!(obs, fresh_obs, "{name}");
+    }
+}
+
+#[test]
+fn out_of_range_actions_are_clipped() {
+    for name in DOMAINS {
+        let spec = make(name).unwrap().spec().clone();
+        let (mut a, mut b) = (make(name).unwrap(), make(name).unwrap());
+        let (mut oa, mut ob) = (vec![0.0; spec.obs_dim], vec![0.0; spec.obs_dim]);
+        a.reset(5, &mut oa).unwrap();
+        b.reset(5, &mut ob).unwrap();
+        let huge: Vec<f32> = spec.action_high.iter().map(|h| h * 10.0).collect();
+        a.step(&huge, &mut oa).unwrap();
+        b.step(&spec.action_high, &mut ob).unwrap();
+        assert_eq!(oa, ob, "{name}");
+    }
+}
+
+#[test]
+fn episodes_end_at_their_length() {
+    for name in DOMAINS {
+        let mut env = make(name).unwrap();
+        let spec = env.spec().clone();
+        let mut obs = vec![0.0; spec.obs_dim];
+        env.reset(0, &mut obs).unwrap();
+        let zero = vec![0.0; spec.act_dim];
+        let mut steps = 0;
+        loop {
+            steps += 1;
+            let t = env.step(&zero, &mut obs).unwrap();
+            if t.terminated || t.truncated {
+                break;
+            }
+        }
+        assert!(steps <= spec.episode_len, "{name}");
+    }
+}
+
+#[test]
+fn pendulum_follows_gymnasium_pendulum_v1() {
+    let mut env = Pendulum::new();
+    let mut obs = [0.0f32; 3];
+    env.reset(11, &mut obs).unwrap();
+    let (mut th, mut thdot) = (
+        f64::from(obs[1]).atan2(f64::from(obs[0])),
+        f64::from(obs[2]),
+    );
+    for k in 0..200 {
+        let u = ((k as f64) * 0.37).sin() * 2.0;
+        let t = env.step(&[u as f32], &mut obs).unwrap();
+        // gymnasium: cost from the state before the step, then semi-implicit Euler.
+        let norm = (th + std::f64::consts::PI).rem_euclid(2.0 * std::f64::consts::PI)
+            - std::f64::consts::PI;
+        let u32_ = f64::from(u as f32);
+        let cost = norm * norm + 0.1 * thdot * thdot + 0.001 * u32_ * u32_;
+        assert!((t.reward + cost).abs() < 1e-4, "step {k}");
+        let new_thdot = (thdot + (15.0 * th.sin() + 3.0 * u32_) * 0.05).clamp(-8.0, 8.0);
+        th += new_thdot * 0.05;
+        thdot = new_thdot;
+        assert!(
+            (f64::from(obs[0]) - th.cos()).abs() < 1e-3 && (f64::from(obs[2]) - thdot).abs() < 1e-3
+        );
+        assert_eq!(t.truncated, k == 199);
+    }
+}
