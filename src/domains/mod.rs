@@ -1,8 +1,11 @@
 //! Environments (issue 3): the task interface shared by training and the simulator client.
-//! Domains so far: `pendulum` (gymnasium's Pendulum-v1, no physics engine).
+//! Domains so far: `pendulum` (gymnasium's Pendulum-v1, no physics engine) and `lander`
+//! (LunarLanderContinuous on rapier2d).
 
+mod lander;
 mod pendulum;
 
+pub use lander::Lander;
 pub use pendulum::Pendulum;
 
 /// What a domain is: sizes, bounds and episode length.
@@ -99,11 +102,12 @@ fn check_obs_len(spec: &EnvSpec, obs: &[f32]) -> Result<(), EnvError> {
 }
 
 /// Every domain's name.
-pub const DOMAINS: &[&str] = &["pendulum"];
+pub const DOMAINS: &[&str] = &["lander", "pendulum"];
 
 /// A new environment of the named domain.
 pub fn make(name: &str) -> Option<Box<dyn Env>> {
     match name {
+        "lander" => Some(Box::new(Lander::new())),
         "pendulum" => Some(Box::new(Pendulum::new())),
         _ => None,
     }

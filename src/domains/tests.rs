@@ -157,3 +157,35 @@ fn pendulum_follows_gymnasium_pendulum_v1() {
         assert_eq!(t.truncated, k == 199);
     }
 }
+
+#[test]
+fn a_lander_with_its_engines_off_crashes_with_minus_100() {
+    for seed in 0..6 {
+        let mut env = Lander::new();
+        let mut obs = [0.0f32; 8];
+        env.reset(seed, &mut obs).unwrap();
+        let mut steps = 0;
+        let last = loop {
+            let t = env.step(&[0.0, 0.0], &mut obs).unwrap();
+            steps += 1;
+            if t.terminated || t.truncated {
+                break t;
+            }
+        };
+        assert!(last.terminated && last.reward == -100.0, "seed {seed}: {last:?}");
+        // It fell from the top: it took a second or more.
+        assert!(steps > 40, "seed {seed}: {steps} steps");
+    }
+}
+
+#[test]
+fn the_lander_starts_at_the_top_centre_with_its_legs_in_the_air() {
+    let mut env = Lander::new();
+    let mut obs = [0.0f32; 8];
+    for seed in 0..5 {
+        env.reset(seed, &mut obs).unwrap();
+        // x near the centre, y (relative to the helipad) near the top, no leg contact.
+        assert!(obs[0].abs() < 0.1 && obs[1] > 1.2 && obs[1] < 1.5, "{obs:?}");
+        assert_eq!((obs[6], obs[7]), (0.0, 0.0));
+    }
+}
