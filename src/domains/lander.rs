@@ -104,8 +104,10 @@ impl Lander {
     /// A fresh world: terrain from the seed, the lander at the top centre.
     fn build(&mut self, seed: u64) {
         self.rng = ChaCha8Rng::seed_from_u64(seed);
-        let mut world = PhysicsWorld::default();
-        world.gravity = Vector::new(0.0, -10.0);
+        let mut world = PhysicsWorld {
+            gravity: Vector::new(0.0, -10.0),
+            ..Default::default()
+        };
         world.integration_parameters.dt = 1.0 / FPS;
 
         // Terrain: CHUNKS + 1 random heights, the helipad flattened, then smoothed (gym's
@@ -122,11 +124,19 @@ impl Lander {
         }
         let smooth: Vec<f32> = (0..CHUNKS)
             .map(|i| {
-                let prev = if i == 0 { height[CHUNKS] } else { height[i - 1] };
+                let prev = if i == 0 {
+                    height[CHUNKS]
+                } else {
+                    height[i - 1]
+                };
                 0.33 * (prev + height[i] + height[i + 1])
             })
             .collect();
-        self.terrain = chunk_x.iter().copied().zip(smooth.iter().copied()).collect();
+        self.terrain = chunk_x
+            .iter()
+            .copied()
+            .zip(smooth.iter().copied())
+            .collect();
         let points: Vec<Vector> = self
             .terrain
             .iter()
@@ -272,11 +282,17 @@ impl Lander {
         reward -= f64::from(side_power) * 0.03;
 
         // Box2D's sleep test, by hand: the whole lander still for half a second.
-        let still = [self.hull, self.legs[0].0, self.legs[1].0].iter().all(|&b| {
-            let body = &self.world.bodies[b];
-            body.linvel().length() < REST_LINEAR && body.angvel().abs() < REST_ANGULAR
-        });
-        self.rest_time = if still { self.rest_time + 1.0 / FPS } else { 0.0 };
+        let still = [self.hull, self.legs[0].0, self.legs[1].0]
+            .iter()
+            .all(|&b| {
+                let body = &self.world.bodies[b];
+                body.linvel().length() < REST_LINEAR && body.angvel().abs() < REST_ANGULAR
+            });
+        self.rest_time = if still {
+            self.rest_time + 1.0 / FPS
+        } else {
+            0.0
+        };
         if self.game_over || state[0].abs() >= 1.0 {
             return (-100.0, true);
         }

@@ -172,7 +172,10 @@ fn a_lander_with_its_engines_off_crashes_with_minus_100() {
                 break t;
             }
         };
-        assert!(last.terminated && last.reward == -100.0, "seed {seed}: {last:?}");
+        assert!(
+            last.terminated && last.reward == -100.0,
+            "seed {seed}: {last:?}"
+        );
         // It fell from the top: it took a second or more.
         assert!(steps > 40, "seed {seed}: {steps} steps");
     }
@@ -185,7 +188,10 @@ fn the_lander_starts_at_the_top_centre_with_its_legs_in_the_air() {
     for seed in 0..5 {
         env.reset(seed, &mut obs).unwrap();
         // x near the centre, y (relative to the helipad) near the top, no leg contact.
-        assert!(obs[0].abs() < 0.1 && obs[1] > 1.2 && obs[1] < 1.5, "{obs:?}");
+        assert!(
+            obs[0].abs() < 0.1 && obs[1] > 1.2 && obs[1] < 1.5,
+            "{obs:?}"
+        );
         assert_eq!((obs[6], obs[7]), (0.0, 0.0));
     }
 }
