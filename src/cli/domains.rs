@@ -17,7 +17,7 @@ pub fn table() -> String {
         let env = make(name).expect("listed domains exist");
         let s = env.spec();
         out.push_str(&format!(
-            "{:<10} {:>7} {:>7} {:>14} {:>8}  {}\n",
+            "{:<10} {:>7} {:>7} {:>14} {:>8.4}  {}\n",
             s.name, s.obs_dim, s.act_dim, s.episode_len, s.control_period, s.engine
         ));
     }

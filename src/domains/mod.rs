@@ -4,9 +4,11 @@
 
 mod lander;
 mod pendulum;
+mod planar;
 
 pub use lander::Lander;
 pub use pendulum::Pendulum;
+pub use planar::Planar;
 
 /// What a domain is: sizes, bounds and episode length.
 #[derive(Clone, Debug, PartialEq)]
@@ -102,12 +104,13 @@ fn check_obs_len(spec: &EnvSpec, obs: &[f32]) -> Result<(), EnvError> {
 }
 
 /// Every domain's name.
-pub const DOMAINS: &[&str] = &["lander", "pendulum"];
+pub const DOMAINS: &[&str] = &["lander", "hopper", "pendulum"];
 
 /// A new environment of the named domain.
 pub fn make(name: &str) -> Option<Box<dyn Env>> {
     match name {
         "lander" => Some(Box::new(Lander::new())),
+        "hopper" => Some(Box::new(Planar::hopper())),
         "pendulum" => Some(Box::new(Pendulum::new())),
         _ => None,
     }
