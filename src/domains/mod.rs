@@ -104,13 +104,14 @@ fn check_obs_len(spec: &EnvSpec, obs: &[f32]) -> Result<(), EnvError> {
 }
 
 /// Every domain's name.
-pub const DOMAINS: &[&str] = &["lander", "hopper", "pendulum"];
+pub const DOMAINS: &[&str] = &["lander", "hopper", "walker", "pendulum"];
 
 /// A new environment of the named domain.
 pub fn make(name: &str) -> Option<Box<dyn Env>> {
     match name {
         "lander" => Some(Box::new(Lander::new())),
         "hopper" => Some(Box::new(Planar::hopper())),
+        "walker" => Some(Box::new(Planar::walker())),
         "pendulum" => Some(Box::new(Pendulum::new())),
         _ => None,
     }

@@ -1,6 +1,6 @@
 //! Planar PyBullet-style walkers on rapier2d (the x-z plane of the MuJoCo models): capsule links,
 //! hinge joints with limits driven by torques, and PyBullet's WalkerBase task interface
-//! (observation, reward terms, termination). Hopper so far.
+//! (observation, reward terms, termination). Hopper and Walker2D so far.
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -101,7 +101,69 @@ fn hopper() -> RobotDef {
     }
 }
 
-/// A planar walker (Hopper).
+/// walker2d.xml: a torso on two hopper-like legs (gear 100, feet 30; PyBullet power 0.4).
+fn walker() -> RobotDef {
+    use std::f32::consts::PI;
+    let deg = PI / 180.0;
+    let mut links = vec![LinkDef {
+        a: (0.0, 1.45),
+        b: (0.0, 1.05),
+        radius: 0.05,
+    }]; // torso
+    let mut joints = Vec::new();
+    // Right leg (links 1-3), then left leg (links 4-6): the same shape, PyBullet's joint order.
+    for first in [1, 4] {
+        links.extend([
+            LinkDef {
+                a: (0.0, 1.05),
+                b: (0.0, 0.6),
+                radius: 0.05,
+            }, // thigh
+            LinkDef {
+                a: (0.0, 0.6),
+                b: (0.0, 0.1),
+                radius: 0.04,
+            }, // leg
+            LinkDef {
+                a: (0.0, 0.1),
+                b: (0.2, 0.1),
+                radius: 0.06,
+            }, // foot
+        ]);
+        joints.extend([
+            JointDef {
+                parent: 0,
+                child: first,
+                anchor: (0.0, 1.05),
+                range: (-150.0 * deg, 0.0),
+                torque: 40.0,
+            },
+            JointDef {
+                parent: first,
+                child: first + 1,
+                anchor: (0.0, 0.6),
+                range: (-150.0 * deg, 0.0),
+                torque: 40.0,
+            },
+            JointDef {
+                parent: first + 1,
+                child: first + 2,
+                anchor: (0.0, 0.1),
+                range: (-45.0 * deg, 45.0 * deg),
+                torque: 12.0,
+            },
+        ]);
+    }
+    RobotDef {
+        name: "walker",
+        links,
+        joints,
+        feet: vec![3, 6],
+        min_z: 0.8,
+    }
+}
+
+/// A planar walker (Hopper, Walker2D).
 pub struct Planar {
     robot: RobotDef,
     spec: EnvSpec,
@@ -120,6 +182,10 @@ pub struct Planar {
 impl Planar {
     pub fn hopper() -> Planar {
         Planar::new(hopper())
+    }
+
+    pub fn walker() -> Planar {
+        Planar::new(walker())
     }
 
     fn new(robot: RobotDef) -> Planar {

@@ -197,30 +197,34 @@ fn the_lander_starts_at_the_top_centre_with_its_legs_in_the_air() {
 }
 
 #[test]
-fn a_hopper_without_torques_falls_and_terminates() {
-    for seed in 0..4 {
-        let mut env = Planar::hopper();
-        let mut obs = [0.0f32; 15];
-        env.reset(seed, &mut obs).unwrap();
-        assert_eq!(
-            &obs[..3],
-            &[0.0, 0.0, 1.0],
-            "starts at its initial height facing the target"
-        );
-        let mut steps = 0;
-        let last = loop {
-            let t = env.step(&[0.0, 0.0, 0.0], &mut obs).unwrap();
-            steps += 1;
-            if t.terminated || t.truncated {
-                break t;
-            }
-        };
-        assert!(last.terminated && !last.truncated, "seed {seed}");
-        // Falling: it lost height or tipped over (|pitch| >= 1) well before the episode's end.
-        assert!(
-            obs[0] < -0.05 || obs[7].abs() >= 1.0,
-            "seed {seed}: {obs:?}"
-        );
-        assert!(steps < 200, "seed {seed}: {steps}");
+fn walkers_without_torques_fall_and_terminate() {
+    for name in ["hopper", "walker"] {
+        for seed in 0..3 {
+            let mut env = make(name).unwrap();
+            let spec = env.spec().clone();
+            let mut obs = vec![0.0f32; spec.obs_dim];
+            env.reset(seed, &mut obs).unwrap();
+            assert_eq!(
+                &obs[..3],
+                &[0.0, 0.0, 1.0],
+                "{name}: starts at its height facing the target"
+            );
+            let zero = vec![0.0; spec.act_dim];
+            let mut steps = 0;
+            let last = loop {
+                let t = env.step(&zero, &mut obs).unwrap();
+                steps += 1;
+                if t.terminated || t.truncated {
+                    break t;
+                }
+            };
+            assert!(last.terminated && !last.truncated, "{name} seed {seed}");
+            // Falling: it lost height or tipped over (|pitch| >= 1) well before the episode's end.
+            assert!(
+                obs[0] < -0.05 || obs[7].abs() >= 1.0,
+                "{name} seed {seed}: {obs:?}"
+            );
+            assert!(steps < 300, "{name} seed {seed}: {steps}");
+        }
     }
 }
