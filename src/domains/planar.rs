@@ -17,6 +17,8 @@ const TARGET_X: f32 = 1000.0;
 const ELECTRICITY_COST: f64 = -2.0;
 const STALL_TORQUE_COST: f64 = -0.1;
 const JOINTS_AT_LIMIT_COST: f64 = -0.1;
+/// MuJoCo's default density; masses are those of the 3D capsules (a 2D shape's area would give
+/// other masses).
 const DENSITY: f32 = 1000.0;
 
 /// A capsule link, endpoints at rest in world (x, z).
@@ -24,6 +26,16 @@ struct LinkDef {
     a: (f32, f32),
     b: (f32, f32),
     radius: f32,
+}
+
+impl LinkDef {
+    /// The mass of the 3D capsule, as MuJoCo computes it.
+    fn mass(&self) -> f32 {
+        use std::f32::consts::PI;
+        let length = ((self.b.0 - self.a.0).powi(2) + (self.b.1 - self.a.1).powi(2)).sqrt();
+        let r = self.radius;
+        DENSITY * (PI * r * r * length + 4.0 / 3.0 * PI * r * r * r)
+    }
 }
 
 /// A hinge between two links at a world anchor (at rest), with limits (rad) and the torque of a
@@ -269,7 +281,7 @@ impl Planar {
                     .rotation(angle)
                     .can_sleep(false),
                 ColliderBuilder::capsule_from_endpoints(a, b, link.radius)
-                    .density(DENSITY)
+                    .mass(link.mass())
                     .friction(FLOOR_FRICTION)
                     .collision_groups(robot_group),
             );
@@ -289,6 +301,14 @@ impl Planar {
         self.ground = ground;
         self.bodies = bodies;
         self.colliders = colliders;
+    }
+
+    /// The robot's mass in kg.
+    pub fn total_mass(&self) -> f32 {
+        self.bodies
+            .iter()
+            .map(|&b| self.world.bodies[b].mass())
+            .sum()
     }
 
     fn torso(&self) -> &RigidBody {

@@ -228,3 +228,14 @@ fn walkers_without_torques_fall_and_terminate() {
         }
     }
 }
+
+#[test]
+fn the_hopper_weighs_what_the_model_says() {
+    // hopper.xml's capsules at MuJoCo's density 1000: 15.8 kg.
+    let env = Planar::hopper();
+    assert!(
+        (env.total_mass() - 15.8).abs() < 0.1,
+        "{}",
+        env.total_mass()
+    );
+}
