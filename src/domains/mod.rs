@@ -104,7 +104,7 @@ fn check_obs_len(spec: &EnvSpec, obs: &[f32]) -> Result<(), EnvError> {
 }
 
 /// Every domain's name.
-pub const DOMAINS: &[&str] = &["lander", "hopper", "walker", "pendulum"];
+pub const DOMAINS: &[&str] = &["lander", "hopper", "walker", "cheetah", "pendulum"];
 
 /// A new environment of the named domain.
 pub fn make(name: &str) -> Option<Box<dyn Env>> {
@@ -112,6 +112,7 @@ pub fn make(name: &str) -> Option<Box<dyn Env>> {
         "lander" => Some(Box::new(Lander::new())),
         "hopper" => Some(Box::new(Planar::hopper())),
         "walker" => Some(Box::new(Planar::walker())),
+        "cheetah" => Some(Box::new(Planar::cheetah())),
         "pendulum" => Some(Box::new(Pendulum::new())),
         _ => None,
     }

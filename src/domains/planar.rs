@@ -1,6 +1,6 @@
 //! Planar PyBullet-style walkers on rapier2d (the x-z plane of the MuJoCo models): capsule links,
 //! hinge joints with limits driven by torques, and PyBullet's WalkerBase task interface
-//! (observation, reward terms, termination). Hopper and Walker2D so far.
+//! (observation, reward terms, termination): Hopper, Walker2D and HalfCheetah.
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -21,14 +21,14 @@ const JOINTS_AT_LIMIT_COST: f64 = -0.1;
 /// other masses).
 const DENSITY: f32 = 1000.0;
 
-/// A capsule link, endpoints at rest in world (x, z).
-struct LinkDef {
+/// A capsule, endpoints at rest in world (x, z).
+struct Capsule {
     a: (f32, f32),
     b: (f32, f32),
     radius: f32,
 }
 
-impl LinkDef {
+impl Capsule {
     /// The mass of the 3D capsule, as MuJoCo computes it.
     fn mass(&self) -> f32 {
         use std::f32::consts::PI;
@@ -38,14 +38,76 @@ impl LinkDef {
     }
 }
 
-/// A hinge between two links at a world anchor (at rest), with limits (rad) and the torque of a
-/// unit action (PyBullet's power x gear).
+/// A rigid link: its frame's origin and its capsules, at rest in world (x, z).
+struct LinkDef {
+    origin: (f32, f32),
+    capsules: Vec<Capsule>,
+}
+
+/// A one-capsule link whose origin is the capsule's centre (MuJoCo's `fromto` geoms).
+fn link(a: (f32, f32), b: (f32, f32), radius: f32) -> LinkDef {
+    LinkDef {
+        origin: ((a.0 + b.0) / 2.0, (a.1 + b.1) / 2.0),
+        capsules: vec![Capsule { a, b, radius }],
+    }
+}
+
+/// A capsule given as MuJoCo does with `pos`, `axisangle="0 1 0 angle"` and `size="radius
+/// half_length"`, in a body whose origin is `origin`.
+fn mj_capsule(
+    origin: (f32, f32),
+    pos: (f32, f32),
+    angle: f32,
+    half_length: f32,
+    radius: f32,
+) -> Capsule {
+    let center = (origin.0 + pos.0, origin.1 + pos.1);
+    // A rotation about +y turns the capsule's z axis to (sin, cos) in (x, z).
+    let axis = (angle.sin() * half_length, angle.cos() * half_length);
+    Capsule {
+        a: (center.0 - axis.0, center.1 - axis.1),
+        b: (center.0 + axis.0, center.1 + axis.1),
+        radius,
+    }
+}
+
+/// A hinge between two links at a world anchor (at rest), with limits (rad, in the model's
+/// convention) and the torque of a unit action (PyBullet's power x gear). `axis` is +1 for a
+/// model hinge about -y (a counter-clockwise angle in the x-z plane), -1 for one about +y.
 struct JointDef {
     parent: usize,
     child: usize,
     anchor: (f32, f32),
     range: (f32, f32),
     torque: f32,
+    axis: f32,
+}
+
+fn hinge(
+    parent: usize,
+    child: usize,
+    anchor: (f32, f32),
+    range: (f32, f32),
+    torque: f32,
+    axis: f32,
+) -> JointDef {
+    JointDef {
+        parent,
+        child,
+        anchor,
+        range,
+        torque,
+        axis,
+    }
+}
+
+/// PyBullet's alive bonus: +1 while alive, -1 otherwise.
+enum Alive {
+    /// Torso z above this and |pitch| below 1 (Hopper, Walker2D); the episode ends when not alive.
+    Upright { min_z: f32 },
+    /// |pitch| below 1 and none of these feet entries touching the ground (HalfCheetah's shins
+    /// and thighs); never ends the episode.
+    NoContact { forbidden: Vec<usize> },
 }
 
 struct RobotDef {
@@ -53,117 +115,54 @@ struct RobotDef {
     links: Vec<LinkDef>,
     /// In order: every parent comes before its children.
     joints: Vec<JointDef>,
+    /// Links whose ground contact is observed (PyBullet's foot_list order).
     feet: Vec<usize>,
-    /// Alive while torso z is above this and |pitch| below 1.
-    min_z: f32,
+    alive: Alive,
 }
 
 fn hopper() -> RobotDef {
-    use std::f32::consts::PI;
-    let deg = PI / 180.0;
+    let deg = std::f32::consts::PI / 180.0;
     RobotDef {
         name: "hopper",
         links: vec![
-            LinkDef {
-                a: (0.0, 1.45),
-                b: (0.0, 1.05),
-                radius: 0.05,
-            }, // torso
-            LinkDef {
-                a: (0.0, 1.05),
-                b: (0.0, 0.6),
-                radius: 0.05,
-            }, // thigh
-            LinkDef {
-                a: (0.0, 0.6),
-                b: (0.0, 0.1),
-                radius: 0.04,
-            }, // leg
-            LinkDef {
-                a: (-0.13, 0.1),
-                b: (0.26, 0.1),
-                radius: 0.06,
-            }, // foot
+            link((0.0, 1.45), (0.0, 1.05), 0.05),  // torso
+            link((0.0, 1.05), (0.0, 0.6), 0.05),   // thigh
+            link((0.0, 0.6), (0.0, 0.1), 0.04),    // leg
+            link((-0.13, 0.1), (0.26, 0.1), 0.06), // foot
         ],
         joints: vec![
-            JointDef {
-                parent: 0,
-                child: 1,
-                anchor: (0.0, 1.05),
-                range: (-150.0 * deg, 0.0),
-                torque: 75.0,
-            },
-            JointDef {
-                parent: 1,
-                child: 2,
-                anchor: (0.0, 0.6),
-                range: (-150.0 * deg, 0.0),
-                torque: 75.0,
-            },
-            JointDef {
-                parent: 2,
-                child: 3,
-                anchor: (0.0, 0.1),
-                range: (-45.0 * deg, 45.0 * deg),
-                torque: 75.0,
-            },
+            hinge(0, 1, (0.0, 1.05), (-150.0 * deg, 0.0), 75.0, 1.0),
+            hinge(1, 2, (0.0, 0.6), (-150.0 * deg, 0.0), 75.0, 1.0),
+            hinge(2, 3, (0.0, 0.1), (-45.0 * deg, 45.0 * deg), 75.0, 1.0),
         ],
         feet: vec![3],
-        min_z: 0.8,
+        alive: Alive::Upright { min_z: 0.8 },
     }
 }
 
 /// walker2d.xml: a torso on two hopper-like legs (gear 100, feet 30; PyBullet power 0.4).
 fn walker() -> RobotDef {
-    use std::f32::consts::PI;
-    let deg = PI / 180.0;
-    let mut links = vec![LinkDef {
-        a: (0.0, 1.45),
-        b: (0.0, 1.05),
-        radius: 0.05,
-    }]; // torso
+    let deg = std::f32::consts::PI / 180.0;
+    let mut links = vec![link((0.0, 1.45), (0.0, 1.05), 0.05)]; // torso
     let mut joints = Vec::new();
     // Right leg (links 1-3), then left leg (links 4-6): the same shape, PyBullet's joint order.
     for first in [1, 4] {
         links.extend([
-            LinkDef {
-                a: (0.0, 1.05),
-                b: (0.0, 0.6),
-                radius: 0.05,
-            }, // thigh
-            LinkDef {
-                a: (0.0, 0.6),
-                b: (0.0, 0.1),
-                radius: 0.04,
-            }, // leg
-            LinkDef {
-                a: (0.0, 0.1),
-                b: (0.2, 0.1),
-                radius: 0.06,
-            }, // foot
+            link((0.0, 1.05), (0.0, 0.6), 0.05), // thigh
+            link((0.0, 0.6), (0.0, 0.1), 0.04),  // leg
+            link((0.0, 0.1), (0.2, 0.1), 0.06),  // foot
         ]);
         joints.extend([
-            JointDef {
-                parent: 0,
-                child: first,
-                anchor: (0.0, 1.05),
-                range: (-150.0 * deg, 0.0),
-                torque: 40.0,
-            },
-            JointDef {
-                parent: first,
-                child: first + 1,
-                anchor: (0.0, 0.6),
-                range: (-150.0 * deg, 0.0),
-                torque: 40.0,
-            },
-            JointDef {
-                parent: first + 1,
-                child: first + 2,
-                anchor: (0.0, 0.1),
-                range: (-45.0 * deg, 45.0 * deg),
-                torque: 12.0,
-            },
+            hinge(0, first, (0.0, 1.05), (-150.0 * deg, 0.0), 40.0, 1.0),
+            hinge(first, first + 1, (0.0, 0.6), (-150.0 * deg, 0.0), 40.0, 1.0),
+            hinge(
+                first + 1,
+                first + 2,
+                (0.0, 0.1),
+                (-45.0 * deg, 45.0 * deg),
+                12.0,
+                1.0,
+            ),
         ]);
     }
     RobotDef {
@@ -171,18 +170,86 @@ fn walker() -> RobotDef {
         links,
         joints,
         feet: vec![3, 6],
-        min_z: 0.8,
+        alive: Alive::Upright { min_z: 0.8 },
     }
 }
 
-/// A planar walker (Hopper, Walker2D).
+/// half_cheetah.xml: a torso with a head, back and front legs of three links each, hinges about
+/// +y; PyBullet power 0.9 x gears (120, 90, 60, 140, 60, 30).
+fn cheetah() -> RobotDef {
+    let torso = (0.0, 0.7);
+    let at = |base: (f32, f32), offset: (f32, f32)| (base.0 + offset.0, base.1 + offset.1);
+    let (bthigh, fthigh) = (at(torso, (-0.5, 0.0)), at(torso, (0.5, 0.0)));
+    let bshin = at(bthigh, (0.16, -0.25));
+    let bfoot = at(bshin, (-0.28, -0.14));
+    let fshin = at(fthigh, (0.14, -0.24));
+    let ffoot = at(fshin, (0.13, -0.18));
+    let r = 0.046;
+    let body = |origin: (f32, f32), capsules: Vec<Capsule>| LinkDef { origin, capsules };
+    RobotDef {
+        name: "cheetah",
+        links: vec![
+            body(
+                torso,
+                vec![
+                    Capsule {
+                        a: (-0.5, 0.7),
+                        b: (0.5, 0.7),
+                        radius: r,
+                    },
+                    mj_capsule(torso, (0.6, 0.1), 0.87, 0.15, r), // head
+                ],
+            ),
+            body(
+                bthigh,
+                vec![mj_capsule(bthigh, (0.1, -0.13), -3.8, 0.145, r)],
+            ),
+            body(
+                bshin,
+                vec![mj_capsule(bshin, (-0.14, -0.07), -2.03, 0.15, r)],
+            ),
+            body(
+                bfoot,
+                vec![mj_capsule(bfoot, (0.03, -0.097), -0.27, 0.094, r)],
+            ),
+            body(
+                fthigh,
+                vec![mj_capsule(fthigh, (-0.07, -0.12), 0.52, 0.133, r)],
+            ),
+            body(
+                fshin,
+                vec![mj_capsule(fshin, (0.065, -0.09), -0.6, 0.106, r)],
+            ),
+            body(
+                ffoot,
+                vec![mj_capsule(ffoot, (0.045, -0.07), -0.6, 0.07, r)],
+            ),
+        ],
+        joints: vec![
+            hinge(0, 1, bthigh, (-0.52, 1.05), 0.9 * 120.0, -1.0),
+            hinge(1, 2, bshin, (-0.785, 0.785), 0.9 * 90.0, -1.0),
+            hinge(2, 3, bfoot, (-0.4, 0.785), 0.9 * 60.0, -1.0),
+            hinge(0, 4, fthigh, (-1.0, 0.7), 0.9 * 140.0, -1.0),
+            hinge(4, 5, fshin, (-1.2, 0.87), 0.9 * 60.0, -1.0),
+            hinge(5, 6, ffoot, (-0.5, 0.5), 0.9 * 30.0, -1.0),
+        ],
+        // PyBullet's foot_list: ffoot, fshin, fthigh, bfoot, bshin, bthigh.
+        feet: vec![6, 5, 4, 3, 2, 1],
+        alive: Alive::NoContact {
+            forbidden: vec![1, 2, 4, 5],
+        },
+    }
+}
+
+/// A planar walker (Hopper, Walker2D, HalfCheetah).
 pub struct Planar {
     robot: RobotDef,
     spec: EnvSpec,
     world: PhysicsWorld,
     ground: ColliderHandle,
     bodies: Vec<RigidBodyHandle>,
-    colliders: Vec<ColliderHandle>,
+    /// Per link, its capsules' colliders.
+    colliders: Vec<Vec<ColliderHandle>>,
     initial_z: f32,
     potential: f64,
     steps: u32,
@@ -198,6 +265,10 @@ impl Planar {
 
     pub fn walker() -> Planar {
         Planar::new(walker())
+    }
+
+    pub fn cheetah() -> Planar {
+        Planar::new(cheetah())
     }
 
     fn new(robot: RobotDef) -> Planar {
@@ -251,49 +322,64 @@ impl Planar {
                 .collision_groups(ground_group),
         );
         // Forward kinematics from the torso: each link turned by its joint about its anchor.
-        let centers: Vec<Vector> = self
+        let origins: Vec<Vector> = self
             .robot
             .links
             .iter()
-            .map(|l| Vector::new((l.a.0 + l.b.0) / 2.0, (l.a.1 + l.b.1) / 2.0))
+            .map(|l| Vector::new(l.origin.0, l.origin.1))
             .collect();
-        let mut poses: Vec<(f32, Vector)> = vec![(0.0, centers[0]); self.robot.links.len()];
+        let mut poses: Vec<(f32, Vector)> = vec![(0.0, origins[0]); self.robot.links.len()];
         for (joint, &q) in self.robot.joints.iter().zip(angles) {
             let (parent_angle, parent_pos) = poses[joint.parent];
             let anchor = Vector::new(joint.anchor.0, joint.anchor.1);
-            let anchor_world = parent_pos + rotate(anchor - centers[joint.parent], parent_angle);
-            let angle = parent_angle + q;
+            let anchor_world = parent_pos + rotate(anchor - origins[joint.parent], parent_angle);
+            let angle = parent_angle + joint.axis * q;
             poses[joint.child] = (
                 angle,
-                anchor_world + rotate(centers[joint.child] - anchor, angle),
+                anchor_world + rotate(origins[joint.child] - anchor, angle),
             );
         }
         let mut bodies = Vec::new();
         let mut colliders = Vec::new();
-        for (link, (&(angle, pos), center)) in
-            self.robot.links.iter().zip(poses.iter().zip(&centers))
+        for (link, (&(angle, pos), origin)) in
+            self.robot.links.iter().zip(poses.iter().zip(&origins))
         {
-            let a = Vector::new(link.a.0, link.a.1) - *center;
-            let b = Vector::new(link.b.0, link.b.1) - *center;
-            let (body, collider) = world.insert(
+            let body = world.insert_body(
                 RigidBodyBuilder::dynamic()
                     .translation(pos)
                     .rotation(angle)
                     .can_sleep(false),
-                ColliderBuilder::capsule_from_endpoints(a, b, link.radius)
-                    .mass(link.mass())
-                    .friction(FLOOR_FRICTION)
-                    .collision_groups(robot_group),
             );
+            let mut handles = Vec::new();
+            for capsule in &link.capsules {
+                let a = Vector::new(capsule.a.0, capsule.a.1) - *origin;
+                let b = Vector::new(capsule.b.0, capsule.b.1) - *origin;
+                handles.push(
+                    world.insert_collider(
+                        ColliderBuilder::capsule_from_endpoints(a, b, capsule.radius)
+                            .mass(capsule.mass())
+                            .friction(FLOOR_FRICTION)
+                            .collision_groups(robot_group),
+                        Some(body),
+                    ),
+                );
+            }
             bodies.push(body);
-            colliders.push(collider);
+            colliders.push(handles);
         }
         for joint in &self.robot.joints {
             let anchor = Vector::new(joint.anchor.0, joint.anchor.1);
+            // Limits in the plane's counter-clockwise convention.
+            let (lo, hi) = joint.range;
+            let limits = if joint.axis > 0.0 {
+                [lo, hi]
+            } else {
+                [-hi, -lo]
+            };
             let hinge = RevoluteJointBuilder::new()
-                .local_anchor1(anchor - centers[joint.parent])
-                .local_anchor2(anchor - centers[joint.child])
-                .limits([joint.range.0, joint.range.1])
+                .local_anchor1(anchor - origins[joint.parent])
+                .local_anchor2(anchor - origins[joint.child])
+                .limits(limits)
                 .contacts_enabled(false);
             world.insert_impulse_joint(bodies[joint.parent], bodies[joint.child], hinge);
         }
@@ -325,8 +411,8 @@ impl Planar {
         for (k, joint) in self.robot.joints.iter().enumerate() {
             let parent = &self.world.bodies[self.bodies[joint.parent]];
             let child = &self.world.bodies[self.bodies[joint.child]];
-            let q = wrap(child.rotation().angle() - parent.rotation().angle());
-            let qdot = child.angvel() - parent.angvel();
+            let q = joint.axis * wrap(child.rotation().angle() - parent.rotation().angle());
+            let qdot = joint.axis * (child.angvel() - parent.angvel());
             let (lo, hi) = joint.range;
             let mid = 0.5 * (lo + hi);
             self.joint_state[2 * k] = 2.0 * (q - mid) / (hi - lo);
@@ -355,10 +441,11 @@ impl Planar {
         obs[..8].copy_from_slice(&more);
         obs[8..8 + self.joint_state.len()].copy_from_slice(&self.joint_state);
         for (k, &foot) in self.robot.feet.iter().enumerate() {
-            let touching = self
-                .world
-                .contact_pair(self.colliders[foot], self.ground)
-                .is_some_and(|pair| pair.has_any_active_contact());
+            let touching = self.colliders[foot].iter().any(|&c| {
+                self.world
+                    .contact_pair(c, self.ground)
+                    .is_some_and(|pair| pair.has_any_active_contact())
+            });
             obs[8 + self.joint_state.len() + k] = f32::from(u8::from(touching));
         }
         for v in obs.iter_mut() {
@@ -407,7 +494,7 @@ impl Env for Planar {
         }
         // Joint torques as equal and opposite torques on child and parent: no spurious momentum.
         for (joint, &u) in self.robot.joints.iter().zip(&a) {
-            let tau = joint.torque * u;
+            let tau = joint.axis * joint.torque * u;
             self.world.bodies[self.bodies[joint.child]].add_torque(tau, true);
             self.world.bodies[self.bodies[joint.parent]].add_torque(-tau, true);
         }
@@ -418,11 +505,15 @@ impl Env for Planar {
             self.world.bodies[body].reset_forces(false);
         }
         let (z, pitch) = self.observe(obs);
-        let alive = if z > self.robot.min_z && pitch.abs() < 1.0 {
-            1.0
-        } else {
-            -1.0
+        let contacts = &obs[8 + self.joint_state.len()..];
+        let (alive, ends) = match &self.robot.alive {
+            Alive::Upright { min_z } => (*min_z < z && pitch.abs() < 1.0, true),
+            Alive::NoContact { forbidden } => (
+                pitch.abs() < 1.0 && forbidden.iter().all(|&k| contacts[k] == 0.0),
+                false,
+            ),
         };
+        let alive = if alive { 1.0 } else { -1.0 };
         let old_potential = self.potential;
         self.potential = self.potential();
         let progress = self.potential - old_potential;
@@ -443,7 +534,7 @@ impl Env for Planar {
             .count() as f64;
         let reward = alive + progress + electricity + JOINTS_AT_LIMIT_COST * at_limit;
         self.steps += 1;
-        let terminated = alive < 0.0;
+        let terminated = ends && alive < 0.0;
         let truncated = !terminated && self.steps >= self.spec.episode_len;
         self.over = terminated || truncated;
         Ok(Transition {

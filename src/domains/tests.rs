@@ -239,3 +239,23 @@ fn the_hopper_weighs_what_the_model_says() {
         env.total_mass()
     );
 }
+
+#[test]
+fn the_cheetah_never_terminates_and_weighs_what_the_model_says() {
+    let mut env = Planar::cheetah();
+    // half_cheetah.xml's capsules (head included) at density 1000: 21.2 kg.
+    let mass = env.total_mass();
+    assert!((mass - 21.2).abs() < 0.1, "{mass}");
+    let mut obs = [0.0f32; 26];
+    env.reset(0, &mut obs).unwrap();
+    let mut steps = 0;
+    loop {
+        let t = env.step(&[0.0; 6], &mut obs).unwrap();
+        steps += 1;
+        assert!(!t.terminated);
+        if t.truncated {
+            break;
+        }
+    }
+    assert_eq!(steps, 1000);
+}
