@@ -70,6 +70,11 @@ pub trait Env: Send {
     fn step(&mut self, action: &[f32], obs: &mut [f32]) -> Result<Transition, EnvError>;
 }
 
+/// An angle wrapped to [-pi, pi).
+pub fn wrap_angle(x: f64) -> f64 {
+    (x + std::f64::consts::PI).rem_euclid(2.0 * std::f64::consts::PI) - std::f64::consts::PI
+}
+
 /// Checks an action and returns it clipped to the bounds (into `clipped`).
 pub fn clip_action(spec: &EnvSpec, action: &[f32], clipped: &mut [f32]) -> Result<(), EnvError> {
     if action.len() != spec.act_dim {

@@ -4,7 +4,7 @@
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, clip_action};
+use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, clip_action, wrap_angle};
 
 const MAX_SPEED: f64 = 8.0;
 const MAX_TORQUE: f32 = 2.0;
@@ -56,11 +56,6 @@ impl Pendulum {
     }
 }
 
-/// The angle wrapped to [-pi, pi).
-fn angle_normalize(x: f64) -> f64 {
-    (x + std::f64::consts::PI).rem_euclid(2.0 * std::f64::consts::PI) - std::f64::consts::PI
-}
-
 impl Env for Pendulum {
     fn spec(&self) -> &EnvSpec {
         &self.spec
@@ -86,7 +81,7 @@ impl Env for Pendulum {
         }
         let u = f64::from(u[0]);
         let (th, thdot) = (self.theta, self.theta_dot);
-        let cost = angle_normalize(th).powi(2) + 0.1 * thdot * thdot + 0.001 * u * u;
+        let cost = wrap_angle(th).powi(2) + 0.1 * thdot * thdot + 0.001 * u * u;
         let new_thdot = (thdot + (3.0 * G / (2.0 * L) * th.sin() + 3.0 / (M * L * L) * u) * DT)
             .clamp(-MAX_SPEED, MAX_SPEED);
         self.theta = th + new_thdot * DT;

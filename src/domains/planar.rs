@@ -6,7 +6,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rapier2d::prelude::*;
 
-use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, clip_action};
+use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, clip_action, wrap_angle};
 
 const CONTROL_PERIOD: f32 = 0.0165;
 const SUBSTEPS: usize = 4;
@@ -411,7 +411,10 @@ impl Planar {
         for (k, joint) in self.robot.joints.iter().enumerate() {
             let parent = &self.world.bodies[self.bodies[joint.parent]];
             let child = &self.world.bodies[self.bodies[joint.child]];
-            let q = joint.axis * wrap(child.rotation().angle() - parent.rotation().angle());
+            let q = joint.axis
+                * wrap_angle(f64::from(
+                    child.rotation().angle() - parent.rotation().angle(),
+                )) as f32;
             let qdot = joint.axis * (child.angvel() - parent.angvel());
             let (lo, hi) = joint.range;
             let mid = 0.5 * (lo + hi);
@@ -458,11 +461,6 @@ impl Planar {
 fn rotate(v: Vector, angle: f32) -> Vector {
     let (s, c) = angle.sin_cos();
     Vector::new(c * v.x - s * v.y, s * v.x + c * v.y)
-}
-
-fn wrap(angle: f32) -> f32 {
-    use std::f32::consts::PI;
-    (angle + PI).rem_euclid(2.0 * PI) - PI
 }
 
 impl Env for Planar {
