@@ -6,6 +6,7 @@
 //! - [`plan`]: Replan (Algorithm 2), shared by serving and training.
 //! - [`serve`]: the gRPC daemon.
 //! - [`domains`]: the environments (task interface) for training and the simulator client.
+//! - [`train`]: SAC + dynamics model training (Algorithm 1) with burn.
 //! - [`cli`]: `prac inspect` and `prac bench-replan`.
 
 pub mod bundle;
@@ -15,6 +16,7 @@ pub mod nn;
 pub mod plan;
 pub mod policy;
 pub mod serve;
+pub mod train;
 
 pub mod proto {
     //! Generated from proto/prac/v1/prac.proto.

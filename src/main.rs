@@ -42,6 +42,22 @@ enum Command {
         #[arg(long, value_delimiter = ',')]
         domains: Vec<String>,
     },
+    /// Train a policy with SAC and a dynamics model (Algorithm 1) and write a bundle.
+    Train(Box<prac::cli::train::TrainArgs>),
+    /// (Re)train a bundle's dynamics model from recorded transitions (obs, action, next_obs).
+    FitModel(prac::cli::train::FitArgs),
+    /// SAC updates/s ([256, 256], batch 256), model updates/s and env steps/s while training.
+    BenchTrain {
+        /// Seconds measured per update kind.
+        #[arg(long, default_value_t = 3.0)]
+        seconds: f64,
+        /// Domain of the short training run.
+        #[arg(long, default_value = "hopper")]
+        domain: String,
+        /// Steps of the short training run.
+        #[arg(long, default_value_t = 2000)]
+        steps: u64,
+    },
     /// Microseconds per Replan for Hopper-sized networks at plan lengths 1, 8, 32, alone and
     /// batched across sessions, against the machine's matmul rate.
     BenchReplan {
@@ -92,6 +108,14 @@ fn main() -> ExitCode {
                 )
             })
         }
+        Command::Train(args) => prac::cli::train::train(*args),
+        Command::FitModel(args) => prac::cli::train::fit(args),
+        Command::BenchTrain {
+            seconds,
+            domain,
+            steps,
+        } => prac::train::bench::run(Duration::from_secs_f64(seconds), &domain, steps)
+            .map(|b| print!("{}", prac::train::bench::report(&b))),
         Command::BenchReplan {
             seconds,
             lengths,

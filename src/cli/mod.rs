@@ -3,3 +3,4 @@
 pub mod bench;
 pub mod domains;
 pub mod inspect;
+pub mod train;

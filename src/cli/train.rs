@@ -1,0 +1,200 @@
+//! `prac train` and `prac fit-model`.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::Args;
+
+use crate::train::fit::{FitOptions, Transitions, fit_model};
+use crate::train::run::{TrainOptions, Trainer};
+use crate::train::sac::SacConfig;
+
+#[derive(Args, Debug)]
+pub struct TrainArgs {
+    /// Domain to train on (see `prac domains`).
+    #[arg(long)]
+    pub domain: String,
+    /// Environment steps in all (a resumed run counts its earlier steps).
+    #[arg(long, default_value_t = 100_000)]
+    pub steps: u64,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Training-with-PrAC: act from the plan with eps = C * (V_pi - V_rand); 0 = plain SAC.
+    #[arg(long, default_value_t = 0.0)]
+    pub epsilon_coef: f64,
+    /// Fixed V_pi,V_rand for eps while training [default: V_rand measured before training,
+    /// V_pi the critic's value of the policy at each episode's first state].
+    #[arg(long, value_delimiter = ',', num_args = 2)]
+    pub value_scale: Option<Vec<f64>>,
+    /// Longest plan while training with PrAC.
+    #[arg(long, default_value_t = crate::plan::DEFAULT_MAX_HORIZON)]
+    pub max_horizon: usize,
+    /// The bundle to write.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Training curve CSV [default: OUT without extension + .train.csv].
+    #[arg(long)]
+    pub csv: Option<PathBuf>,
+    /// Checkpoint directory [default: OUT without extension + .ckpt].
+    #[arg(long)]
+    pub checkpoint_dir: Option<PathBuf>,
+    /// Time between checkpoints.
+    #[arg(long, default_value = "2m", value_parser = humantime::parse_duration)]
+    pub checkpoint_every: Duration,
+    /// Continue from the checkpoint (networks, optimiser state, counters, curve).
+    #[arg(long)]
+    pub resume: bool,
+    /// Steps between deterministic evaluations.
+    #[arg(long, default_value_t = 10_000)]
+    pub eval_every: u64,
+    #[arg(long, default_value_t = 5)]
+    pub eval_episodes: usize,
+    /// Episodes for V_pi and V_rand at the end.
+    #[arg(long, default_value_t = 50)]
+    pub value_episodes: usize,
+    /// Hide the progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+    // SAC overrides [default: SB3 with gamma 0.98 and the paper's per-domain settings].
+    #[arg(long)]
+    pub gamma: Option<f64>,
+    #[arg(long)]
+    pub learning_rate: Option<f64>,
+    #[arg(long)]
+    pub buffer_size: Option<usize>,
+    #[arg(long)]
+    pub batch_size: Option<usize>,
+    #[arg(long)]
+    pub tau: Option<f64>,
+    #[arg(long)]
+    pub learning_starts: Option<u64>,
+    #[arg(long)]
+    pub train_freq: Option<u64>,
+    #[arg(long)]
+    pub gradient_steps: Option<usize>,
+    /// Hidden layers of actor and critics, e.g. 256,256.
+    #[arg(long, value_delimiter = ',')]
+    pub hidden: Option<Vec<usize>>,
+}
+
+fn apply_overrides(config: &mut SacConfig, a: &TrainArgs) -> anyhow::Result<()> {
+    macro_rules! set {
+        ($field:ident) => {
+            if let Some(v) = a.$field.clone() {
+                config.$field = v;
+            }
+        };
+    }
+    set!(gamma);
+    set!(learning_rate);
+    set!(buffer_size);
+    set!(batch_size);
+    set!(tau);
+    set!(learning_starts);
+    set!(train_freq);
+    set!(gradient_steps);
+    set!(hidden);
+    anyhow::ensure!(
+        config.gamma > 0.0 && config.gamma < 1.0,
+        "--gamma must be in (0, 1)"
+    );
+    anyhow::ensure!(config.batch_size > 0, "--batch-size must be > 0");
+    anyhow::ensure!(config.train_freq > 0, "--train-freq must be > 0");
+    anyhow::ensure!(
+        config.learning_rate > 0.0 && config.learning_rate.is_finite(),
+        "--learning-rate must be > 0"
+    );
+    anyhow::ensure!(
+        !config.hidden.is_empty() && config.hidden.iter().all(|&h| h > 0),
+        "--hidden needs at least one layer, all > 0"
+    );
+    Ok(())
+}
+
+pub fn train(args: TrainArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        args.epsilon_coef.is_finite() && args.epsilon_coef >= 0.0,
+        "--epsilon-coef must be >= 0"
+    );
+    anyhow::ensure!(args.max_horizon >= 1, "--max-horizon must be >= 1");
+    anyhow::ensure!(args.eval_every > 0, "--eval-every must be > 0");
+    let mut options = TrainOptions::new(&args.domain, &args.out);
+    options.steps = args.steps;
+    options.seed = args.seed;
+    options.epsilon_coef = args.epsilon_coef;
+    options.max_horizon = args.max_horizon;
+    options.value_scale = args.value_scale.as_ref().map(|v| (v[0], v[1]));
+    if let Some(csv) = &args.csv {
+        options.csv = csv.clone();
+        options.eval_csv = csv.with_extension("eval.csv");
+    }
+    if let Some(dir) = &args.checkpoint_dir {
+        options.checkpoint_dir = dir.clone();
+    }
+    options.checkpoint_every = args.checkpoint_every;
+    options.eval_every = args.eval_every;
+    options.eval_episodes = args.eval_episodes.max(1);
+    options.value_episodes = args.value_episodes.max(1);
+    options.progress = !args.quiet;
+    apply_overrides(&mut options.sac, &args)?;
+    let mut trainer = Trainer::new(options, args.resume)?;
+    if args.resume {
+        eprintln!(
+            "resuming at step {} (episode {})",
+            trainer.progress.step, trainer.progress.episode
+        );
+    }
+    let report = trainer.run()?;
+    println!("{}", serde_json::to_string_pretty(&report)?);
+    Ok(())
+}
+
+#[derive(Args, Debug)]
+pub struct FitArgs {
+    /// The bundle whose model is (re)trained.
+    #[arg(long)]
+    pub bundle: PathBuf,
+    /// safetensors with f32 arrays obs [N, obs_dim], action [N, act_dim] (domain units) and
+    /// next_obs [N, obs_dim]; consecutive rows form episodes for the k-step error.
+    #[arg(long)]
+    pub transitions: PathBuf,
+    /// Where to write the bundle [default: replace --bundle].
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Gradient steps.
+    #[arg(long, default_value_t = 20_000)]
+    pub steps: usize,
+    #[arg(long, default_value_t = 256)]
+    pub batch_size: usize,
+    #[arg(long, default_value_t = 1e-4)]
+    pub learning_rate: f64,
+    /// Fraction of rows (the last ones) held out for the error report.
+    #[arg(long, default_value_t = 0.1)]
+    pub holdout: f64,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+}
+
+pub fn fit(args: FitArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        args.holdout > 0.0 && args.holdout < 1.0,
+        "--holdout must be in (0, 1)"
+    );
+    anyhow::ensure!(args.batch_size > 0, "--batch-size must be > 0");
+    let policy = crate::bundle::load(&args.bundle)?;
+    let data = Transitions::load(&args.transitions, policy.obs_dim(), policy.act_dim())?;
+    let options = FitOptions {
+        steps: args.steps,
+        batch_size: args.batch_size,
+        learning_rate: args.learning_rate,
+        holdout: args.holdout,
+        seed: args.seed,
+        ..FitOptions::default()
+    };
+    let (fitted, report) = fit_model(&policy, &data, &options)?;
+    let out = args.out.unwrap_or(args.bundle);
+    crate::bundle::save(&fitted, &out).with_context(|| format!("writing {}", out.display()))?;
+    println!("{}", serde_json::to_string_pretty(&report)?);
+    Ok(())
+}

@@ -1,0 +1,139 @@
+//! Checkpoints: the networks, target critics, temperature and model with their Adam states
+//! (burnpack files), and the options, counters and model statistics (state.json). The replay
+//! buffer is not saved: it is the bulk of a run's memory, and a resumed run refills it with its
+//! current policy before learning again (see docs/training.md).
+//!
+//! A checkpoint is written to `DIR.tmp` and renamed into place, so a run killed while saving
+//! still has its previous checkpoint.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use burn::module::Module;
+use serde::{Deserialize, Serialize};
+
+use super::model::{ModelStats, ModelTrainer};
+use super::run::{Progress, TrainOptions};
+use super::sac::Sac;
+
+pub const STATE_FILE: &str = "state.json";
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Saved {
+    pub options: TrainOptions,
+    pub progress: Progress,
+}
+
+#[derive(Serialize, Deserialize)]
+struct StateFile {
+    options: TrainOptions,
+    progress: Progress,
+    model_stats: ModelStats,
+}
+
+fn sibling(dir: &Path, suffix: &str) -> PathBuf {
+    PathBuf::from(format!("{}{suffix}", dir.display()))
+}
+
+/// The directory holding the newest complete checkpoint, if any.
+fn complete(dir: &Path) -> Option<PathBuf> {
+    [dir.to_path_buf(), sibling(dir, ".old")]
+        .into_iter()
+        .find(|d| d.join(STATE_FILE).is_file())
+}
+
+pub fn exists(dir: &Path) -> bool {
+    complete(dir).is_some()
+}
+
+fn record_error(path: &Path, e: impl std::fmt::Display) -> anyhow::Error {
+    anyhow::anyhow!("{}: {e}", path.display())
+}
+
+pub fn save(dir: &Path, saved: &Saved, sac: &Sac, model: &ModelTrainer) -> anyhow::Result<()> {
+    let tmp = sibling(dir, ".tmp");
+    if tmp.exists() {
+        std::fs::remove_dir_all(&tmp)?;
+    }
+    std::fs::create_dir_all(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
+    let file = |name: &str| tmp.join(name);
+    let modules: [(&str, Box<dyn FnOnce(&Path) -> Result<(), String>>); 5] = [
+        ("actor.bpk", Box::new(|p| sac.actor.clone().save_file(p).map_err(|e| e.to_string()))),
+        ("critic.bpk", Box::new(|p| sac.critic.clone().save_file(p).map_err(|e| e.to_string()))),
+        (
+            "critic_target.bpk",
+            Box::new(|p| sac.critic_target.clone().save_file(p).map_err(|e| e.to_string())),
+        ),
+        ("ent_coef.bpk", Box::new(|p| sac.ent_coef.clone().save_file(p).map_err(|e| e.to_string()))),
+        ("model.bpk", Box::new(|p| model.net.clone().save_file(p).map_err(|e| e.to_string()))),
+    ];
+    for (name, write) in modules {
+        let path = file(name);
+        write(&path).map_err(|e| record_error(&path, e))?;
+    }
+    for (name, optim) in [
+        ("actor_optim.bpk", &sac.actor_optim),
+        ("critic_optim.bpk", &sac.critic_optim),
+        ("ent_coef_optim.bpk", &sac.ent_coef_optim),
+        ("model_optim.bpk", &model.optim),
+    ] {
+        let path = file(name);
+        optim.save(&path).map_err(|e| record_error(&path, e))?;
+    }
+    let state = StateFile {
+        options: saved.options.clone(),
+        progress: saved.progress.clone(),
+        model_stats: model.stats.clone(),
+    };
+    std::fs::write(file(STATE_FILE), serde_json::to_vec_pretty(&state)?)?;
+    // Swap in: the old checkpoint stays complete until the new one has its final name.
+    let old = sibling(dir, ".old");
+    if old.exists() {
+        std::fs::remove_dir_all(&old)?;
+    }
+    if dir.exists() {
+        std::fs::rename(dir, &old)?;
+    }
+    std::fs::rename(&tmp, dir)?;
+    if old.exists() {
+        std::fs::remove_dir_all(&old)?;
+    }
+    Ok(())
+}
+
+/// Restores the learner and model in place; returns the saved options and counters.
+pub fn load(dir: &Path, sac: &mut Sac, model: &mut ModelTrainer) -> anyhow::Result<Saved> {
+    let dir = complete(dir).with_context(|| format!("no checkpoint in {}", dir.display()))?;
+    let state_path = dir.join(STATE_FILE);
+    let state: StateFile = serde_json::from_slice(&std::fs::read(&state_path)?)
+        .with_context(|| format!("reading {}", state_path.display()))?;
+    let file = |name: &str| dir.join(name);
+    let p = file("actor.bpk");
+    sac.actor = sac.actor.clone().try_load_file(&p).map_err(|e| record_error(&p, e))?;
+    let p = file("critic.bpk");
+    sac.critic = sac.critic.clone().try_load_file(&p).map_err(|e| record_error(&p, e))?;
+    let p = file("critic_target.bpk");
+    sac.critic_target = sac
+        .critic_target
+        .clone()
+        .try_load_file(&p)
+        .map_err(|e| record_error(&p, e))?;
+    let p = file("ent_coef.bpk");
+    sac.ent_coef = sac.ent_coef.clone().try_load_file(&p).map_err(|e| record_error(&p, e))?;
+    let p = file("model.bpk");
+    model.net = model.net.clone().try_load_file(&p).map_err(|e| record_error(&p, e))?;
+    for (name, optim) in [
+        ("actor_optim.bpk", &mut sac.actor_optim),
+        ("critic_optim.bpk", &mut sac.critic_optim),
+        ("ent_coef_optim.bpk", &mut sac.ent_coef_optim),
+        ("model_optim.bpk", &mut model.optim),
+    ] {
+        let p = file(name);
+        *optim = optim.clone().load(&p).map_err(|e| record_error(&p, e))?;
+    }
+    model.stats = state.model_stats;
+    Ok(Saved {
+        options: state.options,
+        progress: state.progress,
+    })
+}

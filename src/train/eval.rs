@@ -1,0 +1,186 @@
+//! Rollouts for evaluation: episode returns (plain and discounted), the value scale
+//! (V_pi and V_rand at the start state) and the dynamics model's prediction error.
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+
+use crate::bundle::ValueScale;
+use crate::domains::{Env, EnvError};
+use crate::plan::Networks;
+use crate::policy::{Evaluator, Policy};
+
+/// One finished episode: its returns and the visited states and actions (actions in [-1, 1]).
+#[derive(Clone, Debug, Default)]
+pub struct Episode {
+    pub ret: f64,
+    pub discounted: f64,
+    pub len: usize,
+    /// len + 1 observations.
+    pub observations: Vec<f32>,
+    pub actions: Vec<f32>,
+}
+
+/// Plays one episode from `seed`; `act(obs, action)` writes an action in [-1, 1], which is
+/// scaled to the domain's bounds.
+pub fn run_episode(
+    env: &mut dyn Env,
+    seed: u64,
+    gamma: f64,
+    act: &mut dyn FnMut(&[f32], &mut [f32]),
+) -> Result<Episode, EnvError> {
+    let spec = env.spec().clone();
+    let (od, ad) = (spec.obs_dim, spec.act_dim);
+    let mut obs = vec![0.0; od];
+    env.reset(seed, &mut obs)?;
+    let mut episode = Episode {
+        observations: obs.clone(),
+        ..Episode::default()
+    };
+    let mut action = vec![0.0; ad];
+    let mut scaled = vec![0.0; ad];
+    let mut discount = 1.0;
+    loop {
+        act(&obs, &mut action);
+        for i in 0..ad {
+            let (lo, hi) = (spec.action_low[i], spec.action_high[i]);
+            scaled[i] = lo + 0.5 * (action[i] + 1.0) * (hi - lo);
+        }
+        let t = env.step(&scaled, &mut obs)?;
+        episode.ret += t.reward;
+        episode.discounted += discount * t.reward;
+        discount *= gamma;
+        episode.len += 1;
+        episode.actions.extend_from_slice(&action);
+        episode.observations.extend_from_slice(&obs);
+        if t.terminated || t.truncated {
+            return Ok(episode);
+        }
+    }
+}
+
+/// Mean and population standard deviation.
+pub fn mean_std(values: &[f64]) -> (f64, f64) {
+    if values.is_empty() {
+        return (f64::NAN, f64::NAN);
+    }
+    let n = values.len() as f64;
+    let mean = values.iter().sum::<f64>() / n;
+    let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
+    (mean, var.sqrt())
+}
+
+/// Episodes of the deterministic policy `tanh(mu)`, seeds `seed..seed + episodes`.
+pub fn policy_episodes(
+    policy: &std::sync::Arc<Policy>,
+    env: &mut dyn Env,
+    episodes: usize,
+    seed: u64,
+) -> Result<Vec<Episode>, EnvError> {
+    let mut evaluator = Evaluator::new(policy.clone());
+    let zeros = vec![0.0; policy.act_dim()];
+    let gamma = policy.manifest.gamma;
+    (0..episodes as u64)
+        .map(|k| {
+            run_episode(env, seed + k, gamma, &mut |obs, action| {
+                evaluator.act(obs, &zeros, action)
+            })
+        })
+        .collect()
+}
+
+/// Episodes of uniformly random actions.
+pub fn random_episodes(
+    env: &mut dyn Env,
+    gamma: f64,
+    episodes: usize,
+    seed: u64,
+) -> Result<Vec<Episode>, EnvError> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_0f_a11);
+    (0..episodes as u64)
+        .map(|k| {
+            run_episode(env, seed + k, gamma, &mut |_, action| {
+                action
+                    .iter_mut()
+                    .for_each(|a| *a = rng.random_range(-1.0..=1.0))
+            })
+        })
+        .collect()
+}
+
+/// V_pi(s0) (deterministic policy) and V_rand(s0) (uniform random actions): mean discounted
+/// returns over `episodes` episodes each, with the bundle's gamma.
+pub fn value_scale(
+    policy: &std::sync::Arc<Policy>,
+    env: &mut dyn Env,
+    episodes: usize,
+    seed: u64,
+) -> Result<ValueScale, EnvError> {
+    let discounted = |eps: &[Episode]| mean_std(&eps.iter().map(|e| e.discounted).collect::<Vec<_>>()).0;
+    let v_pi = discounted(&policy_episodes(policy, env, episodes, seed)?);
+    let v_rand = discounted(&random_episodes(env, policy.manifest.gamma, episodes, seed)?);
+    Ok(ValueScale { v_pi, v_rand })
+}
+
+/// The model's error `k` steps ahead, rolling its own predictions forward under the recorded
+/// actions: RMS over features of the error in units of each feature's standard deviation (the
+/// model's normalisation), averaged over every start state with k steps left in its episode.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct ModelError {
+    pub k: usize,
+    pub nrmse: f64,
+    pub samples: usize,
+}
+
+/// One chain of consecutive transitions: len + 1 observations and len actions.
+pub struct Trajectory<'a> {
+    pub observations: &'a [f32],
+    pub actions: &'a [f32],
+}
+
+pub fn model_errors(
+    policy: &std::sync::Arc<Policy>,
+    trajectories: &[Trajectory<'_>],
+    ks: &[usize],
+) -> Vec<ModelError> {
+    let (od, ad) = (policy.obs_dim(), policy.act_dim());
+    let Some(model) = &policy.model else {
+        return Vec::new();
+    };
+    let scale: Vec<f64> = model
+        .normalization
+        .obs_std
+        .iter()
+        .map(|&s| f64::from(s).max(1e-6))
+        .collect();
+    let mut evaluator = Evaluator::new(policy.clone());
+    let kmax = ks.iter().copied().max().unwrap_or(0);
+    let mut sums = vec![0.0f64; kmax + 1];
+    let mut counts = vec![0usize; kmax + 1];
+    let mut state = vec![0.0; od];
+    let mut next = vec![0.0; od];
+    for traj in trajectories {
+        let len = traj.actions.len() / ad;
+        for start in 0..len {
+            state.copy_from_slice(&traj.observations[start * od..(start + 1) * od]);
+            for k in 1..=kmax.min(len - start) {
+                let t = start + k - 1;
+                evaluator.predict_next(&state, &traj.actions[t * ad..(t + 1) * ad], &mut next);
+                state.copy_from_slice(&next);
+                let truth = &traj.observations[(t + 1) * od..(t + 2) * od];
+                let sq: f64 = (0..od)
+                    .map(|i| ((f64::from(state[i]) - f64::from(truth[i])) / scale[i]).powi(2))
+                    .sum();
+                sums[k] += (sq / od as f64).sqrt();
+                counts[k] += 1;
+            }
+        }
+    }
+    ks.iter()
+        .map(|&k| ModelError {
+            k,
+            nrmse: sums[k] / counts[k].max(1) as f64,
+            samples: counts[k],
+        })
+        .collect()
+}

@@ -1,0 +1,201 @@
+//! The dynamics model of the paper (Nagabandi et al.): an MLP predicting the normalised change
+//! `s' - s` from the normalised `(s, a)`, trained by Adam on squared error. Normalisation
+//! statistics are running means and deviations of everything the trainer has seen; the bundle
+//! stores the values in use when it was written.
+
+use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::tensor::Device;
+use rand::Rng;
+use serde::{Deserialize, Serialize};
+
+use super::nets::{MlpNet, matrix, scalar};
+use crate::bundle::Normalization;
+use crate::policy::DynamicsModel;
+
+/// Deviations below this are treated as this (a constant feature must not blow up).
+const MIN_STD: f64 = 1e-6;
+
+/// Welford running mean and variance per feature.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RunningStats {
+    pub count: u64,
+    pub mean: Vec<f64>,
+    pub m2: Vec<f64>,
+}
+
+impl RunningStats {
+    pub fn new(dim: usize) -> RunningStats {
+        RunningStats {
+            count: 0,
+            mean: vec![0.0; dim],
+            m2: vec![0.0; dim],
+        }
+    }
+    pub fn push(&mut self, values: &[f32]) {
+        self.count += 1;
+        let n = self.count as f64;
+        for (i, &v) in values.iter().enumerate() {
+            let v = f64::from(v);
+            let delta = v - self.mean[i];
+            self.mean[i] += delta / n;
+            self.m2[i] += delta * (v - self.mean[i]);
+        }
+    }
+    pub fn mean_f32(&self) -> Vec<f32> {
+        self.mean.iter().map(|&m| m as f32).collect()
+    }
+    /// Population standard deviations, floored; 1 before two samples.
+    pub fn std_f32(&self) -> Vec<f32> {
+        self.m2
+            .iter()
+            .map(|&m2| {
+                if self.count < 2 {
+                    1.0
+                } else {
+                    (m2 / self.count as f64).sqrt().max(MIN_STD) as f32
+                }
+            })
+            .collect()
+    }
+}
+
+/// Normalisation statistics of observations, actions and deltas.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ModelStats {
+    pub obs: RunningStats,
+    pub action: RunningStats,
+    pub delta: RunningStats,
+}
+
+impl ModelStats {
+    pub fn new(obs_dim: usize, act_dim: usize) -> ModelStats {
+        ModelStats {
+            obs: RunningStats::new(obs_dim),
+            action: RunningStats::new(act_dim),
+            delta: RunningStats::new(obs_dim),
+        }
+    }
+    pub fn push(&mut self, obs: &[f32], action: &[f32], next_obs: &[f32], delta: &mut Vec<f32>) {
+        delta.clear();
+        delta.extend(next_obs.iter().zip(obs).map(|(n, o)| n - o));
+        self.obs.push(obs);
+        self.action.push(action);
+        self.delta.push(delta);
+    }
+    pub fn normalization(&self) -> Normalization {
+        Normalization {
+            obs_mean: self.obs.mean_f32(),
+            obs_std: self.obs.std_f32(),
+            action_mean: self.action.mean_f32(),
+            action_std: self.action.std_f32(),
+            delta_mean: self.delta.mean_f32(),
+            delta_std: self.delta.std_f32(),
+        }
+    }
+}
+
+/// The model's network, optimiser and statistics.
+pub struct ModelTrainer {
+    pub obs_dim: usize,
+    pub act_dim: usize,
+    pub net: MlpNet,
+    pub optim: ModuleOptimizer,
+    pub stats: ModelStats,
+    pub learning_rate: f64,
+    device: Device,
+}
+
+/// Normalised inputs `[(s - mu_s) / sd_s, (a - mu_a) / sd_a]` and targets for a batch.
+pub fn normalise_batch(
+    norm: &Normalization,
+    obs: &[f32],
+    actions: &[f32],
+    next_obs: &[f32],
+) -> (Vec<f32>, Vec<f32>) {
+    let od = norm.obs_mean.len();
+    let ad = norm.action_mean.len();
+    let n = obs.len() / od;
+    let mut inputs = Vec::with_capacity(n * (od + ad));
+    let mut targets = Vec::with_capacity(n * od);
+    for k in 0..n {
+        let (o, a, o2) = (
+            &obs[k * od..(k + 1) * od],
+            &actions[k * ad..(k + 1) * ad],
+            &next_obs[k * od..(k + 1) * od],
+        );
+        inputs.extend((0..od).map(|i| (o[i] - norm.obs_mean[i]) / norm.obs_std[i]));
+        inputs.extend((0..ad).map(|i| (a[i] - norm.action_mean[i]) / norm.action_std[i]));
+        targets.extend((0..od).map(|i| (o2[i] - o[i] - norm.delta_mean[i]) / norm.delta_std[i]));
+    }
+    (inputs, targets)
+}
+
+impl ModelTrainer {
+    pub fn new<R: Rng>(
+        obs_dim: usize,
+        act_dim: usize,
+        hidden: &[usize],
+        learning_rate: f64,
+        rng: &mut R,
+        device: &Device,
+    ) -> ModelTrainer {
+        ModelTrainer {
+            obs_dim,
+            act_dim,
+            net: MlpNet::new(obs_dim + act_dim, hidden, Some(obs_dim), rng, device),
+            optim: AdamConfig::new().with_epsilon(1e-8).init(),
+            stats: ModelStats::new(obs_dim, act_dim),
+            learning_rate,
+            device: device.clone(),
+        }
+    }
+
+    /// Starts from a bundle's model (its weights and normalisation as the only statistics).
+    pub fn from_model(model: &DynamicsModel, learning_rate: f64, device: &Device) -> ModelTrainer {
+        let norm = &model.normalization;
+        let (od, ad) = (norm.obs_mean.len(), norm.action_mean.len());
+        let mut stats = ModelStats::new(od, ad);
+        let seed = |s: &mut RunningStats, mean: &[f32], std: &[f32]| {
+            s.count = 2;
+            s.mean = mean.iter().map(|&m| f64::from(m)).collect();
+            s.m2 = std.iter().map(|&d| 2.0 * f64::from(d).powi(2)).collect();
+        };
+        seed(&mut stats.obs, &norm.obs_mean, &norm.obs_std);
+        seed(&mut stats.action, &norm.action_mean, &norm.action_std);
+        seed(&mut stats.delta, &norm.delta_mean, &norm.delta_std);
+        ModelTrainer {
+            obs_dim: od,
+            act_dim: ad,
+            net: MlpNet::from_mlp(&model.net, device),
+            optim: AdamConfig::new().with_epsilon(1e-8).init(),
+            stats,
+            learning_rate,
+            device: device.clone(),
+        }
+    }
+
+    /// One Adam step on the squared error of the normalised delta; returns the loss.
+    pub fn update(&mut self, obs: &[f32], actions: &[f32], next_obs: &[f32]) -> f32 {
+        let n = obs.len() / self.obs_dim;
+        let norm = self.stats.normalization();
+        let (inputs, targets) = normalise_batch(&norm, obs, actions, next_obs);
+        let dev = &self.device;
+        let x = matrix(&inputs, n, self.obs_dim + self.act_dim, dev);
+        let y = matrix(&targets, n, self.obs_dim, dev);
+        let loss = (self.net.forward(x, false) - y).square().mean();
+        let value = scalar(loss.clone().without_autodiff());
+        let grads = GradientsParams::from_grads(loss.backward(), &self.net);
+        self.net = self
+            .optim
+            .step(self.learning_rate, self.net.clone(), grads);
+        value
+    }
+
+    /// The model as the server evaluates it.
+    pub fn to_model(&self) -> DynamicsModel {
+        DynamicsModel {
+            net: self.net.to_mlp(self.obs_dim + self.act_dim, false),
+            normalization: self.stats.normalization(),
+        }
+    }
+}

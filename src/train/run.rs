@@ -1,0 +1,599 @@
+//! Algorithm 1: SAC with a dynamics model, acting either from the policy (plain SAC) or from the
+//! PrAC plan (training-with-PrAC, the same `plan::replan` the server runs), with a training
+//! curve, periodic deterministic evaluations, checkpoints and resume.
+
+use std::fs::{File, OpenOptions};
+use std::io::{BufRead, BufReader, Write};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant, SystemTime};
+
+use anyhow::{Context, bail};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+use serde::{Deserialize, Serialize};
+
+use super::buffer::ReplayBuffer;
+use super::checkpoint;
+use super::eval::{self, ModelError, Trajectory};
+use super::model::ModelTrainer;
+use super::sac::{Batch, Sac, SacConfig, SacLosses};
+use crate::bundle::{
+    CriticSpec, FORMAT_VERSION, Manifest, ModelSpec, NetSpec, Provenance, QAggregation, ValueScale,
+};
+use crate::domains::{self, Env, EnvSpec};
+use crate::nn::Activation;
+use crate::plan::{self, Growth, Networks, Plan, ReplanConfig, ReplanScratch};
+use crate::policy::{Evaluator, Policy};
+
+/// Everything `prac train` takes.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct TrainOptions {
+    pub domain: String,
+    pub steps: u64,
+    pub seed: u64,
+    /// > 0: act from the PrAC plan with eps = coef * (V_pi - V_rand).
+    pub epsilon_coef: f64,
+    pub max_horizon: usize,
+    /// Fixed (V_pi, V_rand) for eps while training; otherwise V_rand is measured before training
+    /// and V_pi is the critic's value of the current policy at each episode's first state.
+    pub value_scale: Option<(f64, f64)>,
+    pub sac: SacConfig,
+    pub out: PathBuf,
+    pub csv: PathBuf,
+    pub eval_csv: PathBuf,
+    pub checkpoint_dir: PathBuf,
+    pub checkpoint_every: Duration,
+    pub eval_every: u64,
+    pub eval_episodes: usize,
+    /// Episodes for V_pi and V_rand at the end.
+    pub value_episodes: usize,
+    pub progress: bool,
+}
+
+impl TrainOptions {
+    /// Defaults for a domain, writing `out` and files beside it.
+    pub fn new(domain: &str, out: &Path) -> TrainOptions {
+        let stem = out.with_extension("");
+        let beside = |suffix: &str| PathBuf::from(format!("{}{suffix}", stem.display()));
+        TrainOptions {
+            domain: domain.to_string(),
+            steps: 100_000,
+            seed: 0,
+            epsilon_coef: 0.0,
+            max_horizon: plan::DEFAULT_MAX_HORIZON,
+            value_scale: None,
+            sac: SacConfig::for_domain(domain),
+            out: out.to_path_buf(),
+            csv: beside(".train.csv"),
+            eval_csv: beside(".eval.csv"),
+            checkpoint_dir: beside(".ckpt"),
+            checkpoint_every: Duration::from_secs(120),
+            eval_every: 10_000,
+            eval_episodes: 5,
+            value_episodes: 50,
+            progress: true,
+        }
+    }
+}
+
+/// What a finished run reports.
+#[derive(Clone, Debug, Serialize)]
+pub struct TrainReport {
+    pub steps: u64,
+    pub episodes: u64,
+    pub seconds: f64,
+    pub value_scale: ValueScale,
+    pub eval_return_mean: f64,
+    pub eval_return_std: f64,
+    pub random_return_mean: f64,
+    pub model_errors: Vec<ModelError>,
+    pub out: PathBuf,
+}
+
+/// Counters and recent history: what a checkpoint stores besides the networks.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Progress {
+    pub step: u64,
+    pub episode: u64,
+    pub gradient_steps: u64,
+    /// Steps taken since this process started (or resumed): learning waits for a refilled buffer.
+    #[serde(skip)]
+    pub fresh_steps: u64,
+    pub v_rand: Option<f64>,
+    pub recent_returns: Vec<f64>,
+    pub recent_forecasts: Vec<f64>,
+    pub last_losses: SacLosses,
+    pub last_model_loss: f32,
+    pub seconds: f64,
+}
+
+pub const CSV_HEADER: &str = "step,episode,return,discounted_return,length,forecast,epsilon,critic_loss,actor_loss,model_loss,ent_coef";
+pub const EVAL_CSV_HEADER: &str = "step,eval_return_mean,eval_return_std,eval_discounted_mean";
+
+/// Builds the manifest of a trained bundle.
+pub fn manifest(spec: &EnvSpec, config: &SacConfig, normalization: crate::bundle::Normalization, steps: u64, seed: u64) -> Manifest {
+    Manifest {
+        format_version: FORMAT_VERSION,
+        name: spec.name.to_string(),
+        domain: spec.name.to_string(),
+        obs_dim: spec.obs_dim,
+        act_dim: spec.act_dim,
+        action_low: spec.action_low.clone(),
+        action_high: spec.action_high.clone(),
+        gamma: config.gamma,
+        actor: NetSpec {
+            hidden: config.hidden.clone(),
+            activation: Activation::Relu,
+        },
+        critic: CriticSpec {
+            n_critics: config.n_critics,
+            hidden: config.hidden.clone(),
+            activation: Activation::Relu,
+        },
+        model: Some(ModelSpec {
+            hidden: config.model_hidden.clone(),
+            activation: Activation::Relu,
+            normalization,
+        }),
+        q_aggregation: QAggregation::Min,
+        value_scale: None,
+        provenance: Provenance {
+            trainer: "prac train (SAC + dynamics model, burn 0.22.1)".to_string(),
+            steps,
+            seed,
+            date: humantime::format_rfc3339_seconds(SystemTime::now()).to_string(),
+        },
+    }
+}
+
+/// The learner's current networks as an inference policy.
+pub fn snapshot(sac: &Sac, model: &ModelTrainer, spec: &EnvSpec, steps: u64, seed: u64) -> Policy {
+    let input = spec.obs_dim + spec.act_dim;
+    Policy {
+        manifest: manifest(spec, &sac.config, model.stats.normalization(), steps, seed),
+        content_hash: String::new(),
+        actor: sac.actor.to_actor(spec.obs_dim),
+        critics: sac.critic.to_mlps(input),
+        model: Some(model.to_model()),
+    }
+}
+
+/// The PrAC agent while training: the committed plan and its rng.
+struct PlanAgent {
+    plan: Plan,
+    spare: Plan,
+    scratch: ReplanScratch,
+    rng: ChaCha8Rng,
+    epsilon: f32,
+}
+
+pub struct Trainer {
+    pub options: TrainOptions,
+    spec: EnvSpec,
+    env: Box<dyn Env>,
+    /// Evaluations play here, so the training episode goes on undisturbed.
+    eval_env: Box<dyn Env>,
+    pub sac: Sac,
+    pub model: ModelTrainer,
+    buffer: ReplayBuffer,
+    rng: ChaCha8Rng,
+    pub progress: Progress,
+    policy: Arc<Policy>,
+    agent: Option<PlanAgent>,
+}
+
+fn append(path: &Path, header: &str) -> anyhow::Result<File> {
+    let new = !path.exists() || std::fs::metadata(path)?.len() == 0;
+    let mut file = OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .with_context(|| format!("opening {}", path.display()))?;
+    if new {
+        writeln!(file, "{header}")?;
+    }
+    Ok(file)
+}
+
+/// Drops CSV rows past `step` (written after the checkpoint a resumed run starts from).
+fn truncate_csv(path: &Path, step: u64) -> anyhow::Result<()> {
+    if !path.exists() {
+        return Ok(());
+    }
+    let reader = BufReader::new(File::open(path)?);
+    let mut kept = String::new();
+    for (i, line) in reader.lines().enumerate() {
+        let line = line?;
+        let row_step = line.split(',').next().and_then(|s| s.parse::<u64>().ok());
+        if i == 0 || row_step.is_some_and(|s| s <= step) {
+            kept.push_str(&line);
+            kept.push('\n');
+        }
+    }
+    std::fs::write(path, kept)?;
+    Ok(())
+}
+
+impl Trainer {
+    /// A fresh run, or the run in `checkpoint_dir` when `resume` is set and a checkpoint exists.
+    pub fn new(options: TrainOptions, resume: bool) -> anyhow::Result<Trainer> {
+        let Some(env) = domains::make(&options.domain) else {
+            bail!(
+                "unknown domain '{}'; known: {}",
+                options.domain,
+                domains::DOMAINS.join(", ")
+            );
+        };
+        let spec = env.spec().clone();
+        let (od, ad) = (spec.obs_dim, spec.act_dim);
+        let mut init_rng = ChaCha8Rng::seed_from_u64(options.seed);
+        let mut sac = Sac::new(options.sac.clone(), od, ad, &mut init_rng);
+        let mut model = ModelTrainer::new(
+            od,
+            ad,
+            &options.sac.model_hidden,
+            options.sac.model_learning_rate,
+            &mut init_rng,
+            &sac.device,
+        );
+        let mut progress = Progress {
+            step: 0,
+            episode: 0,
+            gradient_steps: 0,
+            fresh_steps: 0,
+            v_rand: None,
+            recent_returns: Vec::new(),
+            recent_forecasts: Vec::new(),
+            last_losses: SacLosses::default(),
+            last_model_loss: 0.0,
+            seconds: 0.0,
+        };
+        let resumed = resume && checkpoint::exists(&options.checkpoint_dir);
+        if resumed {
+            let saved = checkpoint::load(&options.checkpoint_dir, &mut sac, &mut model)?;
+            if saved.options.domain != options.domain {
+                bail!(
+                    "checkpoint {} is for domain '{}', not '{}'",
+                    options.checkpoint_dir.display(),
+                    saved.options.domain,
+                    options.domain
+                );
+            }
+            progress = saved.progress;
+            truncate_csv(&options.csv, progress.step)?;
+            truncate_csv(&options.eval_csv, progress.step)?;
+        } else {
+            for path in [&options.csv, &options.eval_csv] {
+                if path.exists() {
+                    std::fs::remove_file(path)?;
+                }
+            }
+        }
+        // A resumed run draws from a stream of its own, fixed by the seed and the step.
+        let rng = ChaCha8Rng::seed_from_u64(
+            options.seed ^ progress.step.wrapping_mul(0x9e37_79b9_7f4a_7c15),
+        );
+        let policy = Arc::new(snapshot(&sac, &model, &spec, progress.step, options.seed));
+        let agent = (options.epsilon_coef > 0.0).then(|| PlanAgent {
+            plan: Plan::with_capacity(od, ad, options.max_horizon + 1),
+            spare: Plan::with_capacity(od, ad, options.max_horizon + 1),
+            scratch: ReplanScratch::new(od, ad),
+            rng: ChaCha8Rng::seed_from_u64(options.seed.wrapping_add(progress.step) ^ 0x91a7),
+            epsilon: 0.0,
+        });
+        Ok(Trainer {
+            buffer: ReplayBuffer::new(od, ad, options.sac.buffer_size),
+            eval_env: domains::make(&options.domain).expect("the domain exists"),
+            env,
+            spec,
+            sac,
+            model,
+            rng,
+            progress,
+            policy,
+            agent,
+            options,
+        })
+    }
+
+    fn learning(&self) -> bool {
+        let warm = self.options.sac.learning_starts.max(self.options.sac.batch_size as u64);
+        self.progress.fresh_steps >= warm && self.buffer.len() >= self.options.sac.batch_size
+    }
+
+    /// Runs to `options.steps`, then writes the bundle; returns the report.
+    pub fn run(&mut self) -> anyhow::Result<TrainReport> {
+        let (od, ad) = (self.spec.obs_dim, self.spec.act_dim);
+        let gamma = self.options.sac.gamma;
+        if self.progress.v_rand.is_none() {
+            let episodes = eval::random_episodes(self.env.as_mut(), gamma, 20, self.options.seed)?;
+            let discounted: Vec<f64> = episodes.iter().map(|e| e.discounted).collect();
+            self.progress.v_rand = Some(eval::mean_std(&discounted).0);
+        }
+        let mut csv = append(&self.options.csv, CSV_HEADER)?;
+        let mut eval_csv = append(&self.options.eval_csv, EVAL_CSV_HEADER)?;
+        let bar = super::progress_bar(self.options.steps, self.progress.step, self.options.progress);
+
+        let mut obs = vec![0.0; od];
+        let mut next_obs = vec![0.0; od];
+        let mut action = vec![0.0; ad];
+        let mut scaled = vec![0.0; ad];
+        let mut noise = vec![0.0; ad];
+        let mut delta = Vec::with_capacity(od);
+        let mut batch = Batch::default();
+        let mut update_noise = Vec::new();
+        let mut evaluator = Evaluator::new(self.policy.clone());
+
+        let started = Instant::now();
+        let seconds_before = self.progress.seconds;
+        let mut last_checkpoint = Instant::now();
+        let mut episode_seed = self.options.seed.wrapping_mul(1_000_003) + self.progress.episode;
+        self.env.reset(episode_seed, &mut obs)?;
+        let (mut t, mut ret, mut disc, mut discount, mut forecast_sum) = (0u64, 0.0, 0.0, 1.0, 0.0);
+        self.start_episode(&obs, &mut evaluator);
+
+        while self.progress.step < self.options.steps {
+            // Act: random before learning starts, then the policy or the PrAC plan.
+            let mut f_t = 1u64;
+            if self.progress.step < self.options.sac.learning_starts {
+                action
+                    .iter_mut()
+                    .for_each(|a| *a = self.rng.random_range(-1.0..=1.0));
+            } else if let Some(agent) = &mut self.agent {
+                let config = ReplanConfig {
+                    epsilon: agent.epsilon,
+                    growth: Growth::default(),
+                    max_horizon: self.options.max_horizon,
+                    sampled: true,
+                };
+                let old = if t == 0 || agent.plan.is_empty() {
+                    plan::PlanView::empty()
+                } else {
+                    agent.plan.tail(1)
+                };
+                let outcome = plan::replan(
+                    &mut evaluator,
+                    &config,
+                    &obs,
+                    t,
+                    old,
+                    &mut agent.spare,
+                    &mut agent.scratch,
+                    &mut agent.rng,
+                );
+                match outcome {
+                    Ok(_) => std::mem::swap(&mut agent.plan, &mut agent.spare),
+                    Err(e) => bail!("replan failed at step {}: {e}", self.progress.step),
+                }
+                action.copy_from_slice(agent.plan.action(0));
+                f_t = t + 1 - agent.plan.decided_at(0);
+            } else {
+                noise
+                    .iter_mut()
+                    .for_each(|z| *z = self.rng.sample(StandardNormal));
+                evaluator.act(&obs, &noise, &mut action);
+            }
+            self.policy.unscale_action(&action, &mut scaled);
+            let transition = self.env.step(&scaled, &mut next_obs)?;
+            self.buffer.push(
+                &obs,
+                &action,
+                transition.reward as f32,
+                &next_obs,
+                transition.terminated,
+            );
+            self.model.stats.push(&obs, &action, &next_obs, &mut delta);
+            ret += transition.reward;
+            disc += discount * transition.reward;
+            discount *= gamma;
+            forecast_sum += f_t as f64;
+            t += 1;
+            self.progress.step += 1;
+            self.progress.fresh_steps += 1;
+            std::mem::swap(&mut obs, &mut next_obs);
+
+            // Learn.
+            if self.learning() && self.progress.step % self.options.sac.train_freq == 0 {
+                for _ in 0..self.options.sac.gradient_steps {
+                    let n = self.options.sac.batch_size;
+                    self.buffer.sample(n, &mut self.rng, &mut batch);
+                    update_noise.clear();
+                    update_noise.extend((0..2 * n * ad).map(|_| {
+                        let z: f32 = self.rng.sample(StandardNormal);
+                        z
+                    }));
+                    self.progress.last_losses = self.sac.update(&batch, &update_noise);
+                    // Algorithm 1 line 14: a model step per gradient step, on its own sample.
+                    self.buffer.sample(n, &mut self.rng, &mut batch);
+                    self.progress.last_model_loss =
+                        self.model
+                            .update(&batch.obs, &batch.actions, &batch.next_obs);
+                    self.progress.gradient_steps += 1;
+                }
+                self.refresh_policy(&mut evaluator);
+            }
+
+            if transition.terminated || transition.truncated {
+                let forecast = forecast_sum / t as f64;
+                let l = &self.progress.last_losses;
+                let epsilon = self.agent.as_ref().map_or(0.0, |a| a.epsilon);
+                writeln!(
+                    csv,
+                    "{},{},{ret},{disc},{t},{forecast},{epsilon},{},{},{},{}",
+                    self.progress.step,
+                    self.progress.episode,
+                    l.critic,
+                    l.actor,
+                    self.progress.last_model_loss,
+                    l.ent_coef
+                )?;
+                push_recent(&mut self.progress.recent_returns, ret);
+                push_recent(&mut self.progress.recent_forecasts, forecast);
+                self.progress.episode += 1;
+                episode_seed = self.options.seed.wrapping_mul(1_000_003) + self.progress.episode;
+                self.env.reset(episode_seed, &mut obs)?;
+                (t, ret, disc, discount, forecast_sum) = (0, 0.0, 0.0, 1.0, 0.0);
+                self.start_episode(&obs, &mut evaluator);
+            }
+
+            if self.progress.step % self.options.eval_every == 0 {
+                let episodes = eval::policy_episodes(
+                    &self.policy,
+                    self.eval_env.as_mut(),
+                    self.options.eval_episodes,
+                    1 << 40,
+                )?;
+                let (mean, std) = eval::mean_std(&episodes.iter().map(|e| e.ret).collect::<Vec<_>>());
+                let (dmean, _) =
+                    eval::mean_std(&episodes.iter().map(|e| e.discounted).collect::<Vec<_>>());
+                writeln!(eval_csv, "{},{mean},{std},{dmean}", self.progress.step)?;
+                bar.println(format!(
+                    "step {}: deterministic evaluation return {mean:.1} +- {std:.1}",
+                    self.progress.step
+                ));
+            }
+
+            if self.progress.step % 100 == 0 {
+                bar.set_position(self.progress.step);
+                bar.set_message(self.status_line());
+            }
+            if last_checkpoint.elapsed() >= self.options.checkpoint_every {
+                csv.flush()?;
+                eval_csv.flush()?;
+                self.progress.seconds = seconds_before + started.elapsed().as_secs_f64();
+                self.checkpoint()?;
+                last_checkpoint = Instant::now();
+            }
+        }
+        csv.flush()?;
+        eval_csv.flush()?;
+        bar.finish_and_clear();
+        self.progress.seconds = seconds_before + started.elapsed().as_secs_f64();
+        self.checkpoint()?;
+        self.finish()
+    }
+
+    /// Episode start: refresh eps from the value scale (training-with-PrAC).
+    fn start_episode(&mut self, obs: &[f32], evaluator: &mut Evaluator) {
+        let coef = self.options.epsilon_coef;
+        let v_rand_measured = self.progress.v_rand;
+        let fixed = self.options.value_scale;
+        let Some(agent) = &mut self.agent else {
+            return;
+        };
+        let range = match fixed {
+            Some((v_pi, v_rand)) => v_pi - v_rand,
+            None => {
+                let mut pi = vec![0.0; self.spec.act_dim];
+                let zeros = vec![0.0; self.spec.act_dim];
+                evaluator.act(obs, &zeros, &mut pi);
+                let (mut q, mut q2) = ([0.0], [0.0]);
+                evaluator.q_pair(obs, &pi, &pi, &mut q, &mut q2);
+                f64::from(q[0]) - v_rand_measured.unwrap_or(0.0)
+            }
+        };
+        agent.epsilon = (coef * range.max(0.0)) as f32;
+        agent.plan.clear();
+    }
+
+    fn refresh_policy(&mut self, evaluator: &mut Evaluator) {
+        self.policy = Arc::new(snapshot(
+            &self.sac,
+            &self.model,
+            &self.spec,
+            self.progress.step,
+            self.options.seed,
+        ));
+        *evaluator = Evaluator::new(self.policy.clone());
+    }
+
+    fn status_line(&self) -> String {
+        let recent = |v: &[f64]| eval::mean_std(v).0;
+        format!(
+            "return {:.1} | forecast {:.2} | alpha {:.3} | critic {:.3} | model {:.4}",
+            recent(&self.progress.recent_returns),
+            recent(&self.progress.recent_forecasts),
+            self.progress.last_losses.ent_coef,
+            self.progress.last_losses.critic,
+            self.progress.last_model_loss,
+        )
+    }
+
+    pub fn checkpoint(&self) -> anyhow::Result<()> {
+        checkpoint::save(
+            &self.options.checkpoint_dir,
+            &checkpoint::Saved {
+                options: self.options.clone(),
+                progress: self.progress.clone(),
+            },
+            &self.sac,
+            &self.model,
+        )
+    }
+
+    /// Measures the value scale and the model's error, and writes the bundle.
+    fn finish(&mut self) -> anyhow::Result<TrainReport> {
+        let mut policy = snapshot(
+            &self.sac,
+            &self.model,
+            &self.spec,
+            self.progress.step,
+            self.options.seed,
+        );
+        let arc = Arc::new(policy.clone());
+        let eval_seed = 1 << 41;
+        let episodes = eval::policy_episodes(
+            &arc,
+            self.env.as_mut(),
+            self.options.value_episodes,
+            eval_seed,
+        )?;
+        let randoms = eval::random_episodes(
+            self.env.as_mut(),
+            self.options.sac.gamma,
+            self.options.value_episodes,
+            eval_seed,
+        )?;
+        let returns: Vec<f64> = episodes.iter().map(|e| e.ret).collect();
+        let (eval_return_mean, eval_return_std) = eval::mean_std(&returns);
+        let value_scale = ValueScale {
+            v_pi: eval::mean_std(&episodes.iter().map(|e| e.discounted).collect::<Vec<_>>()).0,
+            v_rand: eval::mean_std(&randoms.iter().map(|e| e.discounted).collect::<Vec<_>>()).0,
+        };
+        let trajectories: Vec<Trajectory> = episodes
+            .iter()
+            .map(|e| Trajectory {
+                observations: &e.observations,
+                actions: &e.actions,
+            })
+            .collect();
+        let model_errors = eval::model_errors(&arc, &trajectories, &[1, 5, 10]);
+        policy.manifest.value_scale = Some(value_scale);
+        if let Some(dir) = self.options.out.parent() {
+            std::fs::create_dir_all(dir)?;
+        }
+        crate::bundle::save(&policy, &self.options.out)
+            .with_context(|| format!("writing {}", self.options.out.display()))?;
+        Ok(TrainReport {
+            steps: self.progress.step,
+            episodes: self.progress.episode,
+            seconds: self.progress.seconds,
+            value_scale,
+            eval_return_mean,
+            eval_return_std,
+            random_return_mean: eval::mean_std(&randoms.iter().map(|e| e.ret).collect::<Vec<_>>()).0,
+            model_errors,
+            out: self.options.out.clone(),
+        })
+    }
+}
+
+fn push_recent(values: &mut Vec<f64>, value: f64) {
+    const WINDOW: usize = 20;
+    values.push(value);
+    if values.len() > WINDOW {
+        values.remove(0);
+    }
+}
