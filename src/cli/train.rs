@@ -25,8 +25,8 @@ pub struct TrainArgs {
     pub epsilon_coef: f64,
     /// Fixed V_pi,V_rand for eps while training [default: V_rand measured before training,
     /// V_pi the critic's value of the policy at each episode's first state].
-    #[arg(long, value_delimiter = ',', num_args = 2)]
-    pub value_scale: Option<Vec<f64>>,
+    #[arg(long, value_name = "V_PI,V_RAND", allow_hyphen_values = true)]
+    pub value_scale: Option<String>,
     /// Longest plan while training with PrAC.
     #[arg(long, default_value_t = crate::plan::DEFAULT_MAX_HORIZON)]
     pub max_horizon: usize,
@@ -112,6 +112,19 @@ fn apply_overrides(config: &mut SacConfig, a: &TrainArgs) -> anyhow::Result<()> 
     Ok(())
 }
 
+fn parse_value_scale(text: &str) -> anyhow::Result<(f64, f64)> {
+    let parts: Vec<&str> = text.split(',').collect();
+    let parsed: Vec<f64> = parts
+        .iter()
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| anyhow::anyhow!("--value-scale takes V_PI,V_RAND (two numbers), got '{text}'"))?;
+    match parsed[..] {
+        [v_pi, v_rand] if v_pi.is_finite() && v_rand.is_finite() && v_pi > v_rand => Ok((v_pi, v_rand)),
+        _ => anyhow::bail!("--value-scale takes V_PI,V_RAND with V_PI > V_RAND, got '{text}'"),
+    }
+}
+
 pub fn train(args: TrainArgs) -> anyhow::Result<()> {
     anyhow::ensure!(
         args.epsilon_coef.is_finite() && args.epsilon_coef >= 0.0,
@@ -124,7 +137,7 @@ pub fn train(args: TrainArgs) -> anyhow::Result<()> {
     options.seed = args.seed;
     options.epsilon_coef = args.epsilon_coef;
     options.max_horizon = args.max_horizon;
-    options.value_scale = args.value_scale.as_ref().map(|v| (v[0], v[1]));
+    options.value_scale = args.value_scale.as_deref().map(parse_value_scale).transpose()?;
     if let Some(csv) = &args.csv {
         options.csv = csv.clone();
         options.eval_csv = csv.with_extension("eval.csv");

@@ -191,6 +191,15 @@ impl ModelTrainer {
         value
     }
 
+    /// Widths of the hidden layers.
+    pub fn hidden(&self) -> Vec<usize> {
+        let layers = &self.net.layers;
+        layers[..layers.len() - 1]
+            .iter()
+            .map(|l| l.weight.val().dims()[1])
+            .collect()
+    }
+
     /// The model as the server evaluates it.
     pub fn to_model(&self) -> DynamicsModel {
         DynamicsModel {

@@ -151,8 +151,12 @@ pub fn manifest(spec: &EnvSpec, config: &SacConfig, normalization: crate::bundle
 /// The learner's current networks as an inference policy.
 pub fn snapshot(sac: &Sac, model: &ModelTrainer, spec: &EnvSpec, steps: u64, seed: u64) -> Policy {
     let input = spec.obs_dim + spec.act_dim;
+    let mut manifest = manifest(spec, &sac.config, model.stats.normalization(), steps, seed);
+    if let Some(m) = &mut manifest.model {
+        m.hidden = model.hidden();
+    }
     Policy {
-        manifest: manifest(spec, &sac.config, model.stats.normalization(), steps, seed),
+        manifest,
         content_hash: String::new(),
         actor: sac.actor.to_actor(spec.obs_dim),
         critics: sac.critic.to_mlps(input),
@@ -436,6 +440,14 @@ impl Trainer {
                 self.env.reset(episode_seed, &mut obs)?;
                 (t, ret, disc, discount, forecast_sum) = (0, 0.0, 0.0, 1.0, 0.0);
                 self.start_episode(&obs, &mut evaluator);
+                // Checkpoints fall between episodes, so a resumed run starts a fresh one.
+                if last_checkpoint.elapsed() >= self.options.checkpoint_every {
+                    csv.flush()?;
+                    eval_csv.flush()?;
+                    self.progress.seconds = seconds_before + started.elapsed().as_secs_f64();
+                    self.checkpoint()?;
+                    last_checkpoint = Instant::now();
+                }
             }
 
             if self.progress.step % self.options.eval_every == 0 {
@@ -458,13 +470,6 @@ impl Trainer {
             if self.progress.step % 100 == 0 {
                 bar.set_position(self.progress.step);
                 bar.set_message(self.status_line());
-            }
-            if last_checkpoint.elapsed() >= self.options.checkpoint_every {
-                csv.flush()?;
-                eval_csv.flush()?;
-                self.progress.seconds = seconds_before + started.elapsed().as_secs_f64();
-                self.checkpoint()?;
-                last_checkpoint = Instant::now();
             }
         }
         csv.flush()?;

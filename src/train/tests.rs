@@ -1,1 +1,261 @@
+use std::sync::Arc;
 
+use burn::tensor::Tensor;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+
+use super::model::ModelTrainer;
+use super::nets::{matrix, rows};
+use super::run::{TrainOptions, Trainer, snapshot};
+use super::sac::{Batch, Sac, SacConfig};
+use crate::domains;
+use crate::plan::Networks;
+use crate::policy::Evaluator;
+
+fn small_config() -> SacConfig {
+    SacConfig {
+        hidden: vec![32, 32],
+        ..SacConfig::default()
+    }
+}
+
+fn normals(rng: &mut ChaCha8Rng, n: usize) -> Vec<f32> {
+    (0..n).map(|_| rng.sample(StandardNormal)).collect()
+}
+
+fn batch(rng: &mut ChaCha8Rng, n: usize, od: usize, ad: usize) -> Batch {
+    Batch {
+        len: n,
+        obs: normals(rng, n * od),
+        actions: normals(rng, n * ad).into_iter().map(f32::tanh).collect(),
+        rewards: normals(rng, n),
+        next_obs: normals(rng, n * od),
+        dones: (0..n).map(|k| if k % 3 == 0 { 1.0 } else { 0.0 }).collect(),
+    }
+}
+
+fn forward_dense(d: &crate::nn::Dense, x: &[f32]) -> Vec<f32> {
+    let mut out = vec![0.0; d.output_dim()];
+    d.forward_rows(x, &mut out);
+    out
+}
+
+#[test]
+fn squashed_gaussian_log_prob_matches_the_closed_form() {
+    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    let (od, ad, n) = (4, 3, 5);
+    let sac = Sac::new(small_config(), od, ad, &mut rng);
+    let obs = normals(&mut rng, n * od);
+    let noise = normals(&mut rng, n * ad);
+    let dev = &sac.device;
+    let (action, log_prob) = sac.actor.sample(matrix(&obs, n, od, dev), matrix(&noise, n, ad, dev));
+    let (action, log_prob) = (rows(action), rows(log_prob));
+    let actor = sac.actor.to_actor(od);
+    let mut scratch = actor.trunk.scratch_for(1);
+    for k in 0..n {
+        let latent = actor.trunk.forward_rows(&obs[k * od..(k + 1) * od], &mut scratch).to_vec();
+        let mu = forward_dense(&actor.mu, &latent);
+        let log_std = forward_dense(&actor.log_std, &latent);
+        let mut expected = 0.0f64;
+        for i in 0..ad {
+            let ls = f64::from(log_std[i].clamp(-20.0, 2.0));
+            let z = f64::from(noise[k * ad + i]);
+            let u = f64::from(mu[i]) + ls.exp() * z;
+            let a = u.tanh();
+            assert!((a - f64::from(action[k * ad + i])).abs() < 1e-5);
+            let normal = -0.5 * z * z - ls - 0.5 * (2.0 * std::f64::consts::PI).ln();
+            expected += normal - (1.0 - a * a + 1e-6).ln();
+        }
+        let got = f64::from(log_prob[k]);
+        assert!((got - expected).abs() < 1e-3 * expected.abs().max(1.0), "{got} vs {expected}");
+    }
+}
+
+#[test]
+fn td_targets_mask_terminal_transitions() {
+    let mut rng = ChaCha8Rng::seed_from_u64(2);
+    let (od, ad, n) = (3, 2, 6);
+    let sac = Sac::new(small_config(), od, ad, &mut rng);
+    let b = batch(&mut rng, n, od, ad);
+    let noise = normals(&mut rng, n * ad);
+    let dev = &sac.device;
+    let alpha = 0.3;
+    let targets = rows(sac.td_targets(
+        &matrix(&b.rewards, n, 1, dev),
+        &matrix(&b.dones, n, 1, dev),
+        &matrix(&b.next_obs, n, od, dev),
+        matrix(&noise, n, ad, dev),
+        alpha,
+    ));
+    // The closed form with the inference networks: a' = tanh(mu + std z), its log-prob, and the
+    // minimum of the target critics.
+    let (next_action, next_log_prob) = sac.actor.sample(
+        matrix(&b.next_obs, n, od, dev),
+        matrix(&noise, n, ad, dev),
+    );
+    let (next_action, next_log_prob) = (rows(next_action), rows(next_log_prob));
+    let critics = sac.critic_target.to_mlps(od + ad);
+    for k in 0..n {
+        let mut input = b.next_obs[k * od..(k + 1) * od].to_vec();
+        input.extend_from_slice(&next_action[k * ad..(k + 1) * ad]);
+        let min_q = critics
+            .iter()
+            .map(|c| c.forward_rows(&input, &mut c.scratch_for(1))[0])
+            .fold(f32::INFINITY, f32::min);
+        let expected = if b.dones[k] == 1.0 {
+            b.rewards[k]
+        } else {
+            b.rewards[k] + 0.98 * (min_q - alpha * next_log_prob[k])
+        };
+        assert!((targets[k] - expected).abs() < 1e-4, "row {k}: {} vs {expected}", targets[k]);
+    }
+}
+
+#[test]
+fn polyak_update_averages_towards_the_online_critic() {
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let mut sac = Sac::new(small_config(), 3, 2, &mut rng);
+    let b = batch(&mut rng, 16, 3, 2);
+    let noise = normals(&mut rng, 2 * 16 * 2);
+    let before = sac.critic_target.to_mlps(5);
+    sac.update(&b, &noise); // moves the online critics, then the targets by tau
+    let online = sac.critic.to_mlps(5);
+    let after = sac.critic_target.to_mlps(5);
+    let tau = 0.005f32;
+    for c in 0..2 {
+        for (l, layer) in after[c].layers().iter().enumerate() {
+            let (t0, on) = (&before[c].layers()[l], &online[c].layers()[l]);
+            for i in 0..layer.weight.len() {
+                let expected = (1.0 - tau) * t0.weight.as_slice()[i] + tau * on.weight.as_slice()[i];
+                assert!((layer.weight.as_slice()[i] - expected).abs() < 1e-6);
+            }
+        }
+    }
+    // The online critics did move, so the test is not comparing equal tensors.
+    assert_ne!(online[0].layers()[0].weight, before[0].layers()[0].weight);
+}
+
+#[test]
+fn losses_fall_on_a_fixed_batch() {
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    let (od, ad, n) = (3, 1, 64);
+    // gamma 0: the critics regress on the rewards alone, a fixed target.
+    let config = SacConfig {
+        gamma: 0.0,
+        learning_rate: 1e-3,
+        ..small_config()
+    };
+    let mut sac = Sac::new(config, od, ad, &mut rng);
+    let mut b = batch(&mut rng, n, od, ad);
+    // A reward the critics can represent.
+    b.rewards = (0..n)
+        .map(|k| 0.5 * b.obs[k * od..(k + 1) * od].iter().sum::<f32>() + b.actions[k])
+        .collect();
+    let noise = normals(&mut rng, 2 * n * ad);
+    let first = sac.update(&b, &noise);
+    let mut last = first;
+    for _ in 0..200 {
+        last = sac.update(&b, &noise);
+    }
+    assert!(last.critic < 0.3 * first.critic, "critic loss {} -> {}", first.critic, last.critic);
+    assert!(last.actor < first.actor, "actor loss {} -> {}", first.actor, last.actor);
+
+    let mut model = ModelTrainer::new(od, ad, &[16, 16], 1e-3, &mut rng, &sac.device);
+    // A learnable map: next = obs + 0.1 * action (broadcast).
+    let next: Vec<f32> = (0..n)
+        .flat_map(|k| (0..od).map(move |i| (k, i)))
+        .map(|(k, i)| b.obs[k * od + i] + 0.1 * b.actions[k])
+        .collect();
+    let mut delta = Vec::new();
+    for k in 0..n {
+        model.stats.push(&b.obs[k * od..(k + 1) * od], &b.actions[k..k + 1], &next[k * od..(k + 1) * od], &mut delta);
+    }
+    let first = model.update(&b.obs, &b.actions, &next);
+    let mut last = first;
+    for _ in 0..300 {
+        last = model.update(&b.obs, &b.actions, &next);
+    }
+    assert!(last < 0.2 * first, "model loss {first} -> {last}");
+}
+
+#[test]
+fn a_checkpoint_restores_the_exact_learner() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let (od, ad, n) = (3, 2, 32);
+    let config = small_config();
+    let mut sac = Sac::new(config.clone(), od, ad, &mut rng);
+    let mut model = ModelTrainer::new(od, ad, &[8], 1e-3, &mut rng, &sac.device);
+    let b = batch(&mut rng, n, od, ad);
+    let noise = normals(&mut rng, 2 * n * ad);
+    let mut delta = Vec::new();
+    model.stats.push(&b.obs[..od], &b.actions[..ad], &b.next_obs[..od], &mut delta);
+    for _ in 0..3 {
+        sac.update(&b, &noise);
+        model.update(&b.obs, &b.actions, &b.next_obs);
+    }
+    let options = TrainOptions::new("pendulum", &dir.path().join("p.safetensors"));
+    let saved = super::checkpoint::Saved {
+        options: options.clone(),
+        progress: Trainer::new(options.clone(), false).unwrap().progress,
+    };
+    let ckpt = dir.path().join("ckpt");
+    super::checkpoint::save(&ckpt, &saved, &sac, &model).unwrap();
+    // A learner from another seed, restored from the checkpoint, takes the same next step
+    // (the Adam moments came back with their parameters).
+    let mut other_rng = ChaCha8Rng::seed_from_u64(99);
+    let mut restored = Sac::new(config, od, ad, &mut other_rng);
+    let mut restored_model = ModelTrainer::new(od, ad, &[8], 1e-3, &mut other_rng, &restored.device);
+    super::checkpoint::load(&ckpt, &mut restored, &mut restored_model).unwrap();
+    let a = sac.update(&b, &noise);
+    let r = restored.update(&b, &noise);
+    assert_eq!(a, r);
+    let weights = |s: &Sac| s.actor.to_actor(od).mu.weight.clone();
+    assert_eq!(weights(&sac), weights(&restored));
+    assert_eq!(
+        model.update(&b.obs, &b.actions, &b.next_obs),
+        restored_model.update(&b.obs, &b.actions, &b.next_obs)
+    );
+}
+
+#[test]
+fn exported_networks_compute_what_the_learner_computes() {
+    let mut rng = ChaCha8Rng::seed_from_u64(6);
+    let spec = domains::make("pendulum").unwrap().spec().clone();
+    let sac = Sac::new(small_config(), spec.obs_dim, spec.act_dim, &mut rng);
+    let model = ModelTrainer::new(3, 1, &[8, 8], 1e-4, &mut rng, &sac.device);
+    let policy = Arc::new(snapshot(&sac, &model, &spec, 0, 0));
+    // The bundle round trip keeps them.
+    let bytes = crate::bundle::to_bytes(&policy).unwrap();
+    let loaded = Arc::new(crate::bundle::from_bytes(&bytes, std::path::Path::new("t")).unwrap());
+    let obs = [0.3f32, -0.2, 0.7];
+    let mean: Tensor<2> = sac.actor.mean_action(matrix(&obs, 1, 3, &sac.device));
+    let mut action = [0.0f32];
+    Evaluator::new(loaded).act(&obs, &[0.0], &mut action);
+    assert!((rows(mean)[0] - action[0]).abs() < 1e-5);
+}
+
+#[test]
+fn pendulum_training_beats_the_random_policy() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("pendulum.safetensors");
+    let mut options = TrainOptions::new("pendulum", &out);
+    options.steps = 4000;
+    options.eval_every = 2000;
+    options.value_episodes = 10;
+    options.progress = false;
+    let report = Trainer::new(options, false).unwrap().run().unwrap();
+    assert_eq!(report.steps, 4000);
+    assert!(
+        report.eval_return_mean > report.random_return_mean + 400.0 && report.eval_return_mean > -700.0,
+        "policy {:.0} vs random {:.0}",
+        report.eval_return_mean,
+        report.random_return_mean
+    );
+    let policy = crate::bundle::load(&out).unwrap();
+    let scale = policy.manifest.value_scale.unwrap();
+    assert!(scale.v_pi > scale.v_rand);
+    assert_eq!(policy.manifest.provenance.steps, 4000);
+    assert!(report.model_errors[0].nrmse.is_finite());
+}
