@@ -26,7 +26,11 @@ fn curve(path: &Path) -> Vec<(u64, u64, f64)> {
     lines
         .map(|l| {
             let v: Vec<&str> = l.split(',').collect();
-            (v[s].parse().unwrap(), v[e].parse().unwrap(), v[f].parse().unwrap())
+            (
+                v[s].parse().unwrap(),
+                v[e].parse().unwrap(),
+                v[f].parse().unwrap(),
+            )
         })
         .collect()
 }
@@ -64,7 +68,10 @@ fn a_killed_run_resumes_from_its_checkpoint() {
         if let Some(step) = checkpoint_step(&ckpt).filter(|&s| s >= 400) {
             break step;
         }
-        assert!(child.try_wait().unwrap().is_none(), "training ended before a checkpoint");
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "training ended before a checkpoint"
+        );
         assert!(Instant::now() < deadline, "no checkpoint past step 400");
         std::thread::sleep(Duration::from_millis(100));
     };
@@ -75,9 +82,16 @@ fn a_killed_run_resumes_from_its_checkpoint() {
     assert!(at_kill >= killed_after && at_kill < 1600);
 
     let resumed = prac().args(args).arg("--resume").output().unwrap();
-    assert!(resumed.status.success(), "{}", String::from_utf8_lossy(&resumed.stderr));
+    assert!(
+        resumed.status.success(),
+        "{}",
+        String::from_utf8_lossy(&resumed.stderr)
+    );
     let stderr = String::from_utf8_lossy(&resumed.stderr);
-    assert!(stderr.contains(&format!("resuming at step {at_kill}")), "{stderr}");
+    assert!(
+        stderr.contains(&format!("resuming at step {at_kill}")),
+        "{stderr}"
+    );
     let report: serde_json::Value = serde_json::from_slice(&resumed.stdout).unwrap();
     assert_eq!(report["steps"], 1600);
 
@@ -122,7 +136,11 @@ fn training_with_prac_commits_to_plans_and_fit_model_fits_a_model() {
         ])
         .output()
         .unwrap();
-    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
     let rows = curve(&dir.path().join("p.train.csv"));
     // Before learning starts actions are random (forecast 1); after, eps = 10 keeps plans.
     assert_eq!(rows[0].2, 1.0);
@@ -171,7 +189,11 @@ fn training_with_prac_commits_to_plans_and_fit_model_fits_a_model() {
         ])
         .output()
         .unwrap();
-    assert!(fit.status.success(), "{}", String::from_utf8_lossy(&fit.stderr));
+    assert!(
+        fit.status.success(),
+        "{}",
+        String::from_utf8_lossy(&fit.stderr)
+    );
     let report: serde_json::Value = serde_json::from_slice(&fit.stdout).unwrap();
     let after = report["after"].as_array().unwrap();
     let one_step = after[0]["nrmse"].as_f64().unwrap();
@@ -186,7 +208,13 @@ fn training_with_prac_commits_to_plans_and_fit_model_fits_a_model() {
     // Bad transitions are refused with the field named.
     std::fs::write(&file, b"not safetensors").unwrap();
     let bad = prac()
-        .args(["fit-model", "--bundle", out.to_str().unwrap(), "--transitions", file.to_str().unwrap()])
+        .args([
+            "fit-model",
+            "--bundle",
+            out.to_str().unwrap(),
+            "--transitions",
+            file.to_str().unwrap(),
+        ])
         .output()
         .unwrap();
     assert!(!bad.status.success());

@@ -118,9 +118,13 @@ fn parse_value_scale(text: &str) -> anyhow::Result<(f64, f64)> {
         .iter()
         .map(|p| p.trim().parse::<f64>())
         .collect::<Result<_, _>>()
-        .map_err(|_| anyhow::anyhow!("--value-scale takes V_PI,V_RAND (two numbers), got '{text}'"))?;
+        .map_err(|_| {
+            anyhow::anyhow!("--value-scale takes V_PI,V_RAND (two numbers), got '{text}'")
+        })?;
     match parsed[..] {
-        [v_pi, v_rand] if v_pi.is_finite() && v_rand.is_finite() && v_pi > v_rand => Ok((v_pi, v_rand)),
+        [v_pi, v_rand] if v_pi.is_finite() && v_rand.is_finite() && v_pi > v_rand => {
+            Ok((v_pi, v_rand))
+        }
         _ => anyhow::bail!("--value-scale takes V_PI,V_RAND with V_PI > V_RAND, got '{text}'"),
     }
 }
@@ -137,7 +141,11 @@ pub fn train(args: TrainArgs) -> anyhow::Result<()> {
     options.seed = args.seed;
     options.epsilon_coef = args.epsilon_coef;
     options.max_horizon = args.max_horizon;
-    options.value_scale = args.value_scale.as_deref().map(parse_value_scale).transpose()?;
+    options.value_scale = args
+        .value_scale
+        .as_deref()
+        .map(parse_value_scale)
+        .transpose()?;
     if let Some(csv) = &args.csv {
         options.csv = csv.clone();
         options.eval_csv = csv.with_extension("eval.csv");

@@ -20,7 +20,8 @@ pub struct BenchTrain {
 }
 
 fn random_batch(rng: &mut ChaCha8Rng, n: usize, od: usize, ad: usize) -> Batch {
-    let mut normal = |k: usize| -> Vec<f32> { (0..k).map(|_| rng.sample(StandardNormal)).collect() };
+    let mut normal =
+        |k: usize| -> Vec<f32> { (0..k).map(|_| rng.sample(StandardNormal)).collect() };
     Batch {
         len: n,
         obs: normal(n * od),
@@ -38,7 +39,9 @@ pub fn run(per_case: Duration, domain: &str, train_steps: u64) -> anyhow::Result
     let mut rng = ChaCha8Rng::seed_from_u64(7);
     let mut sac = Sac::new(SacConfig::default(), od, ad, &mut rng);
     let batch = random_batch(&mut rng, n, od, ad);
-    let noise: Vec<f32> = (0..2 * n * ad).map(|_| rng.sample(StandardNormal)).collect();
+    let noise: Vec<f32> = (0..2 * n * ad)
+        .map(|_| rng.sample(StandardNormal))
+        .collect();
     let time = |f: &mut dyn FnMut()| {
         f(); // warm-up
         let start = Instant::now();

@@ -103,7 +103,8 @@ impl ReplayBuffer {
         for i in order {
             out.0.extend_from_slice(&self.obs[i * od..(i + 1) * od]);
             out.1.extend_from_slice(&self.actions[i * ad..(i + 1) * ad]);
-            out.2.extend_from_slice(&self.next_obs[i * od..(i + 1) * od]);
+            out.2
+                .extend_from_slice(&self.next_obs[i * od..(i + 1) * od]);
         }
         out
     }

@@ -35,6 +35,9 @@ fn sibling(dir: &Path, suffix: &str) -> PathBuf {
     PathBuf::from(format!("{}{suffix}", dir.display()))
 }
 
+/// Writes one saved part to a path.
+type PartWriter<'a> = Box<dyn FnOnce(&Path) -> Result<(), String> + 'a>;
+
 /// The directory holding the newest complete checkpoint, if any.
 fn complete(dir: &Path) -> Option<PathBuf> {
     [dir.to_path_buf(), sibling(dir, ".old")]
@@ -57,15 +60,32 @@ pub fn save(dir: &Path, saved: &Saved, sac: &Sac, model: &ModelTrainer) -> anyho
     }
     std::fs::create_dir_all(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
     let file = |name: &str| tmp.join(name);
-    let modules: [(&str, Box<dyn FnOnce(&Path) -> Result<(), String>>); 5] = [
-        ("actor.bpk", Box::new(|p| sac.actor.clone().save_file(p).map_err(|e| e.to_string()))),
-        ("critic.bpk", Box::new(|p| sac.critic.clone().save_file(p).map_err(|e| e.to_string()))),
+    let modules: [(&str, PartWriter); 5] = [
+        (
+            "actor.bpk",
+            Box::new(|p| sac.actor.clone().save_file(p).map_err(|e| e.to_string())),
+        ),
+        (
+            "critic.bpk",
+            Box::new(|p| sac.critic.clone().save_file(p).map_err(|e| e.to_string())),
+        ),
         (
             "critic_target.bpk",
-            Box::new(|p| sac.critic_target.clone().save_file(p).map_err(|e| e.to_string())),
+            Box::new(|p| {
+                sac.critic_target
+                    .clone()
+                    .save_file(p)
+                    .map_err(|e| e.to_string())
+            }),
         ),
-        ("ent_coef.bpk", Box::new(|p| sac.ent_coef.clone().save_file(p).map_err(|e| e.to_string()))),
-        ("model.bpk", Box::new(|p| model.net.clone().save_file(p).map_err(|e| e.to_string()))),
+        (
+            "ent_coef.bpk",
+            Box::new(|p| sac.ent_coef.clone().save_file(p).map_err(|e| e.to_string())),
+        ),
+        (
+            "model.bpk",
+            Box::new(|p| model.net.clone().save_file(p).map_err(|e| e.to_string())),
+        ),
     ];
     for (name, write) in modules {
         let path = file(name);
@@ -109,9 +129,17 @@ pub fn load(dir: &Path, sac: &mut Sac, model: &mut ModelTrainer) -> anyhow::Resu
         .with_context(|| format!("reading {}", state_path.display()))?;
     let file = |name: &str| dir.join(name);
     let p = file("actor.bpk");
-    sac.actor = sac.actor.clone().try_load_file(&p).map_err(|e| record_error(&p, e))?;
+    sac.actor = sac
+        .actor
+        .clone()
+        .try_load_file(&p)
+        .map_err(|e| record_error(&p, e))?;
     let p = file("critic.bpk");
-    sac.critic = sac.critic.clone().try_load_file(&p).map_err(|e| record_error(&p, e))?;
+    sac.critic = sac
+        .critic
+        .clone()
+        .try_load_file(&p)
+        .map_err(|e| record_error(&p, e))?;
     let p = file("critic_target.bpk");
     sac.critic_target = sac
         .critic_target
@@ -119,9 +147,17 @@ pub fn load(dir: &Path, sac: &mut Sac, model: &mut ModelTrainer) -> anyhow::Resu
         .try_load_file(&p)
         .map_err(|e| record_error(&p, e))?;
     let p = file("ent_coef.bpk");
-    sac.ent_coef = sac.ent_coef.clone().try_load_file(&p).map_err(|e| record_error(&p, e))?;
+    sac.ent_coef = sac
+        .ent_coef
+        .clone()
+        .try_load_file(&p)
+        .map_err(|e| record_error(&p, e))?;
     let p = file("model.bpk");
-    model.net = model.net.clone().try_load_file(&p).map_err(|e| record_error(&p, e))?;
+    model.net = model
+        .net
+        .clone()
+        .try_load_file(&p)
+        .map_err(|e| record_error(&p, e))?;
     for (name, optim) in [
         ("actor_optim.bpk", &mut sac.actor_optim),
         ("critic_optim.bpk", &mut sac.critic_optim),

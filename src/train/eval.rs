@@ -96,7 +96,7 @@ pub fn random_episodes(
     episodes: usize,
     seed: u64,
 ) -> Result<Vec<Episode>, EnvError> {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_0f_a11);
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_0fa1);
     (0..episodes as u64)
         .map(|k| {
             run_episode(env, seed + k, gamma, &mut |_, action| {
@@ -116,9 +116,15 @@ pub fn value_scale(
     episodes: usize,
     seed: u64,
 ) -> Result<ValueScale, EnvError> {
-    let discounted = |eps: &[Episode]| mean_std(&eps.iter().map(|e| e.discounted).collect::<Vec<_>>()).0;
+    let discounted =
+        |eps: &[Episode]| mean_std(&eps.iter().map(|e| e.discounted).collect::<Vec<_>>()).0;
     let v_pi = discounted(&policy_episodes(policy, env, episodes, seed)?);
-    let v_rand = discounted(&random_episodes(env, policy.manifest.gamma, episodes, seed)?);
+    let v_rand = discounted(&random_episodes(
+        env,
+        policy.manifest.gamma,
+        episodes,
+        seed,
+    )?);
     Ok(ValueScale { v_pi, v_rand })
 }
 

@@ -26,15 +26,25 @@ pub struct Transitions {
 }
 
 fn tensor_f32(st: &SafeTensors, path: &Path, name: &str, cols: usize) -> anyhow::Result<Vec<f32>> {
-    let view = st
-        .tensor(name)
-        .map_err(|_| anyhow::anyhow!("{}: {name}: missing (need obs, action, next_obs)", path.display()))?;
+    let view = st.tensor(name).map_err(|_| {
+        anyhow::anyhow!(
+            "{}: {name}: missing (need obs, action, next_obs)",
+            path.display()
+        )
+    })?;
     if view.dtype() != safetensors::Dtype::F32 {
-        bail!("{}: {name}: dtype {:?}; expected F32", path.display(), view.dtype());
+        bail!(
+            "{}: {name}: dtype {:?}; expected F32",
+            path.display(),
+            view.dtype()
+        );
     }
     let shape = view.shape();
     if shape.len() != 2 || shape[1] != cols {
-        bail!("{}: {name}: shape {shape:?}; expected [N, {cols}]", path.display());
+        bail!(
+            "{}: {name}: shape {shape:?}; expected [N, {cols}]",
+            path.display()
+        );
     }
     Ok(view
         .data()
@@ -54,13 +64,24 @@ impl Transitions {
         let next_obs = tensor_f32(&st, path, "next_obs", obs_dim)?;
         let len = obs.len() / obs_dim;
         if action.len() / act_dim != len || next_obs.len() / obs_dim != len {
-            bail!("{}: obs, action and next_obs have different row counts", path.display());
+            bail!(
+                "{}: obs, action and next_obs have different row counts",
+                path.display()
+            );
         }
         if len < 2 {
             bail!("{}: {len} transitions; need at least 2", path.display());
         }
-        if let Some(i) = obs.iter().chain(&action).chain(&next_obs).position(|v| !v.is_finite()) {
-            bail!("{}: value {i} (in file order) is not finite", path.display());
+        if let Some(i) = obs
+            .iter()
+            .chain(&action)
+            .chain(&next_obs)
+            .position(|v| !v.is_finite())
+        {
+            bail!(
+                "{}: value {i} (in file order) is not finite",
+                path.display()
+            );
         }
         Ok(Transitions {
             len,
@@ -74,13 +95,26 @@ impl Transitions {
     pub fn save(&self, path: &Path) -> anyhow::Result<()> {
         use safetensors::tensor::TensorView;
         let to_bytes = |v: &[f32]| -> Vec<u8> { v.iter().flat_map(|x| x.to_le_bytes()).collect() };
-        let (o, a, n) = (to_bytes(&self.obs), to_bytes(&self.action), to_bytes(&self.next_obs));
+        let (o, a, n) = (
+            to_bytes(&self.obs),
+            to_bytes(&self.action),
+            to_bytes(&self.next_obs),
+        );
         let od = self.obs.len() / self.len;
         let ad = self.action.len() / self.len;
         let views = vec![
-            ("obs", TensorView::new(safetensors::Dtype::F32, vec![self.len, od], &o)?),
-            ("action", TensorView::new(safetensors::Dtype::F32, vec![self.len, ad], &a)?),
-            ("next_obs", TensorView::new(safetensors::Dtype::F32, vec![self.len, od], &n)?),
+            (
+                "obs",
+                TensorView::new(safetensors::Dtype::F32, vec![self.len, od], &o)?,
+            ),
+            (
+                "action",
+                TensorView::new(safetensors::Dtype::F32, vec![self.len, ad], &a)?,
+            ),
+            (
+                "next_obs",
+                TensorView::new(safetensors::Dtype::F32, vec![self.len, od], &n)?,
+            ),
         ];
         std::fs::write(path, safetensors::serialize(views, None)?)?;
         Ok(())
@@ -88,7 +122,13 @@ impl Transitions {
 }
 
 /// Splits rows into chains of consecutive transitions (next_obs of one is obs of the next).
-pub fn chains(obs: &[f32], actions: &[f32], next_obs: &[f32], od: usize, ad: usize) -> Vec<(Vec<f32>, Vec<f32>)> {
+pub fn chains(
+    obs: &[f32],
+    actions: &[f32],
+    next_obs: &[f32],
+    od: usize,
+    ad: usize,
+) -> Vec<(Vec<f32>, Vec<f32>)> {
     let n = obs.len() / od;
     let mut out = Vec::new();
     let mut start = 0;
@@ -139,11 +179,19 @@ impl Default for FitOptions {
 
 /// Fits a fresh 4 x 64 model (normalisation from the training rows) to `data`; the last
 /// `holdout` fraction of rows is held out. Returns the policy with its new model.
-pub fn fit_model(policy: &Policy, data: &Transitions, options: &FitOptions) -> anyhow::Result<(Policy, FitReport)> {
+pub fn fit_model(
+    policy: &Policy,
+    data: &Transitions,
+    options: &FitOptions,
+) -> anyhow::Result<(Policy, FitReport)> {
     let (od, ad) = (policy.obs_dim(), policy.act_dim());
     // The model sees actions in the policy's [-1, 1] space, as Replan does.
     let mut squashed = vec![0.0; data.action.len()];
-    for (a, s) in data.action.chunks_exact(ad).zip(squashed.chunks_exact_mut(ad)) {
+    for (a, s) in data
+        .action
+        .chunks_exact(ad)
+        .zip(squashed.chunks_exact_mut(ad))
+    {
         policy.scale_action(a, s);
     }
     let held = ((data.len as f64 * options.holdout).round() as usize).clamp(1, data.len - 1);

@@ -185,9 +185,7 @@ impl ModelTrainer {
         let loss = (self.net.forward(x, false) - y).square().mean();
         let value = scalar(loss.clone().without_autodiff());
         let grads = GradientsParams::from_grads(loss.backward(), &self.net);
-        self.net = self
-            .optim
-            .step(self.learning_rate, self.net.clone(), grads);
+        self.net = self.optim.step(self.learning_rate, self.net.clone(), grads);
         value
     }
 

@@ -247,7 +247,10 @@ impl CriticNet {
 
     pub fn from_mlps(critics: &[Mlp], device: &Device) -> CriticNet {
         CriticNet {
-            q: critics.iter().map(|m| MlpNet::from_mlp(m, device)).collect(),
+            q: critics
+                .iter()
+                .map(|m| MlpNet::from_mlp(m, device))
+                .collect(),
         }
     }
 

@@ -113,7 +113,13 @@ pub const CSV_HEADER: &str = "step,episode,return,discounted_return,length,forec
 pub const EVAL_CSV_HEADER: &str = "step,eval_return_mean,eval_return_std,eval_discounted_mean";
 
 /// Builds the manifest of a trained bundle.
-pub fn manifest(spec: &EnvSpec, config: &SacConfig, normalization: crate::bundle::Normalization, steps: u64, seed: u64) -> Manifest {
+pub fn manifest(
+    spec: &EnvSpec,
+    config: &SacConfig,
+    normalization: crate::bundle::Normalization,
+    steps: u64,
+    seed: u64,
+) -> Manifest {
     Manifest {
         format_version: FORMAT_VERSION,
         name: spec.name.to_string(),
@@ -303,7 +309,11 @@ impl Trainer {
     }
 
     fn learning(&self) -> bool {
-        let warm = self.options.sac.learning_starts.max(self.options.sac.batch_size as u64);
+        let warm = self
+            .options
+            .sac
+            .learning_starts
+            .max(self.options.sac.batch_size as u64);
         self.progress.fresh_steps >= warm && self.buffer.len() >= self.options.sac.batch_size
     }
 
@@ -318,7 +328,11 @@ impl Trainer {
         }
         let mut csv = append(&self.options.csv, CSV_HEADER)?;
         let mut eval_csv = append(&self.options.eval_csv, EVAL_CSV_HEADER)?;
-        let bar = super::progress_bar(self.options.steps, self.progress.step, self.options.progress);
+        let bar = super::progress_bar(
+            self.options.steps,
+            self.progress.step,
+            self.options.progress,
+        );
 
         let mut obs = vec![0.0; od];
         let mut next_obs = vec![0.0; od];
@@ -399,7 +413,12 @@ impl Trainer {
             std::mem::swap(&mut obs, &mut next_obs);
 
             // Learn.
-            if self.learning() && self.progress.step % self.options.sac.train_freq == 0 {
+            if self.learning()
+                && self
+                    .progress
+                    .step
+                    .is_multiple_of(self.options.sac.train_freq)
+            {
                 for _ in 0..self.options.sac.gradient_steps {
                     let n = self.options.sac.batch_size;
                     self.buffer.sample(n, &mut self.rng, &mut batch);
@@ -450,14 +469,15 @@ impl Trainer {
                 }
             }
 
-            if self.progress.step % self.options.eval_every == 0 {
+            if self.progress.step.is_multiple_of(self.options.eval_every) {
                 let episodes = eval::policy_episodes(
                     &self.policy,
                     self.eval_env.as_mut(),
                     self.options.eval_episodes,
                     1 << 40,
                 )?;
-                let (mean, std) = eval::mean_std(&episodes.iter().map(|e| e.ret).collect::<Vec<_>>());
+                let (mean, std) =
+                    eval::mean_std(&episodes.iter().map(|e| e.ret).collect::<Vec<_>>());
                 let (dmean, _) =
                     eval::mean_std(&episodes.iter().map(|e| e.discounted).collect::<Vec<_>>());
                 writeln!(eval_csv, "{},{mean},{std},{dmean}", self.progress.step)?;
@@ -467,7 +487,7 @@ impl Trainer {
                 ));
             }
 
-            if self.progress.step % 100 == 0 {
+            if self.progress.step.is_multiple_of(100) {
                 bar.set_position(self.progress.step);
                 bar.set_message(self.status_line());
             }
@@ -588,7 +608,8 @@ impl Trainer {
             value_scale,
             eval_return_mean,
             eval_return_std,
-            random_return_mean: eval::mean_std(&randoms.iter().map(|e| e.ret).collect::<Vec<_>>()).0,
+            random_return_mean: eval::mean_std(&randoms.iter().map(|e| e.ret).collect::<Vec<_>>())
+                .0,
             model_errors,
             out: self.options.out.clone(),
         })

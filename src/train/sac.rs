@@ -180,9 +180,7 @@ impl Sac {
         .mean()
         .neg();
         let grads = GradientsParams::from_grads(ent_coef_loss.backward(), &self.ent_coef);
-        self.ent_coef = self
-            .ent_coef_optim
-            .step(lr, self.ent_coef.clone(), grads);
+        self.ent_coef = self.ent_coef_optim.step(lr, self.ent_coef.clone(), grads);
 
         let target = self
             .td_targets(&rewards, &dones, &next_obs, noise_next, ent_coef)
@@ -233,8 +231,8 @@ impl Sac {
         let next_obs = next_obs.clone().without_autodiff();
         let (next_actions, next_log_prob) =
             actor.sample(next_obs.clone(), noise_next.without_autodiff());
-        let next_q = self.critic_target.min_q(next_obs, next_actions)
-            - next_log_prob.mul_scalar(ent_coef);
+        let next_q =
+            self.critic_target.min_q(next_obs, next_actions) - next_log_prob.mul_scalar(ent_coef);
         let not_done = dones.clone().without_autodiff().neg().add_scalar(1.0);
         rewards.clone().without_autodiff()
             + (not_done * next_q).mul_scalar(self.config.gamma as f32)

@@ -49,12 +49,17 @@ fn squashed_gaussian_log_prob_matches_the_closed_form() {
     let obs = normals(&mut rng, n * od);
     let noise = normals(&mut rng, n * ad);
     let dev = &sac.device;
-    let (action, log_prob) = sac.actor.sample(matrix(&obs, n, od, dev), matrix(&noise, n, ad, dev));
+    let (action, log_prob) = sac
+        .actor
+        .sample(matrix(&obs, n, od, dev), matrix(&noise, n, ad, dev));
     let (action, log_prob) = (rows(action), rows(log_prob));
     let actor = sac.actor.to_actor(od);
     let mut scratch = actor.trunk.scratch_for(1);
     for k in 0..n {
-        let latent = actor.trunk.forward_rows(&obs[k * od..(k + 1) * od], &mut scratch).to_vec();
+        let latent = actor
+            .trunk
+            .forward_rows(&obs[k * od..(k + 1) * od], &mut scratch)
+            .to_vec();
         let mu = forward_dense(&actor.mu, &latent);
         let log_std = forward_dense(&actor.log_std, &latent);
         let mut expected = 0.0f64;
@@ -68,7 +73,10 @@ fn squashed_gaussian_log_prob_matches_the_closed_form() {
             expected += normal - (1.0 - a * a + 1e-6).ln();
         }
         let got = f64::from(log_prob[k]);
-        assert!((got - expected).abs() < 1e-3 * expected.abs().max(1.0), "{got} vs {expected}");
+        assert!(
+            (got - expected).abs() < 1e-3 * expected.abs().max(1.0),
+            "{got} vs {expected}"
+        );
     }
 }
 
@@ -90,10 +98,9 @@ fn td_targets_mask_terminal_transitions() {
     ));
     // The closed form with the inference networks: a' = tanh(mu + std z), its log-prob, and the
     // minimum of the target critics.
-    let (next_action, next_log_prob) = sac.actor.sample(
-        matrix(&b.next_obs, n, od, dev),
-        matrix(&noise, n, ad, dev),
-    );
+    let (next_action, next_log_prob) = sac
+        .actor
+        .sample(matrix(&b.next_obs, n, od, dev), matrix(&noise, n, ad, dev));
     let (next_action, next_log_prob) = (rows(next_action), rows(next_log_prob));
     let critics = sac.critic_target.to_mlps(od + ad);
     for k in 0..n {
@@ -108,7 +115,11 @@ fn td_targets_mask_terminal_transitions() {
         } else {
             b.rewards[k] + 0.98 * (min_q - alpha * next_log_prob[k])
         };
-        assert!((targets[k] - expected).abs() < 1e-4, "row {k}: {} vs {expected}", targets[k]);
+        assert!(
+            (targets[k] - expected).abs() < 1e-4,
+            "row {k}: {} vs {expected}",
+            targets[k]
+        );
     }
 }
 
@@ -127,7 +138,8 @@ fn polyak_update_averages_towards_the_online_critic() {
         for (l, layer) in after[c].layers().iter().enumerate() {
             let (t0, on) = (&before[c].layers()[l], &online[c].layers()[l]);
             for i in 0..layer.weight.len() {
-                let expected = (1.0 - tau) * t0.weight.as_slice()[i] + tau * on.weight.as_slice()[i];
+                let expected =
+                    (1.0 - tau) * t0.weight.as_slice()[i] + tau * on.weight.as_slice()[i];
                 assert!((layer.weight.as_slice()[i] - expected).abs() < 1e-6);
             }
         }
@@ -158,8 +170,18 @@ fn losses_fall_on_a_fixed_batch() {
     for _ in 0..200 {
         last = sac.update(&b, &noise);
     }
-    assert!(last.critic < 0.3 * first.critic, "critic loss {} -> {}", first.critic, last.critic);
-    assert!(last.actor < first.actor, "actor loss {} -> {}", first.actor, last.actor);
+    assert!(
+        last.critic < 0.3 * first.critic,
+        "critic loss {} -> {}",
+        first.critic,
+        last.critic
+    );
+    assert!(
+        last.actor < first.actor,
+        "actor loss {} -> {}",
+        first.actor,
+        last.actor
+    );
 
     let mut model = ModelTrainer::new(od, ad, &[16, 16], 1e-3, &mut rng, &sac.device);
     // A learnable map: next = obs + 0.1 * action (broadcast).
@@ -169,7 +191,12 @@ fn losses_fall_on_a_fixed_batch() {
         .collect();
     let mut delta = Vec::new();
     for k in 0..n {
-        model.stats.push(&b.obs[k * od..(k + 1) * od], &b.actions[k..k + 1], &next[k * od..(k + 1) * od], &mut delta);
+        model.stats.push(
+            &b.obs[k * od..(k + 1) * od],
+            &b.actions[k..k + 1],
+            &next[k * od..(k + 1) * od],
+            &mut delta,
+        );
     }
     let first = model.update(&b.obs, &b.actions, &next);
     let mut last = first;
@@ -190,7 +217,12 @@ fn a_checkpoint_restores_the_exact_learner() {
     let b = batch(&mut rng, n, od, ad);
     let noise = normals(&mut rng, 2 * n * ad);
     let mut delta = Vec::new();
-    model.stats.push(&b.obs[..od], &b.actions[..ad], &b.next_obs[..od], &mut delta);
+    model.stats.push(
+        &b.obs[..od],
+        &b.actions[..ad],
+        &b.next_obs[..od],
+        &mut delta,
+    );
     for _ in 0..3 {
         sac.update(&b, &noise);
         model.update(&b.obs, &b.actions, &b.next_obs);
@@ -206,7 +238,8 @@ fn a_checkpoint_restores_the_exact_learner() {
     // (the Adam moments came back with their parameters).
     let mut other_rng = ChaCha8Rng::seed_from_u64(99);
     let mut restored = Sac::new(config, od, ad, &mut other_rng);
-    let mut restored_model = ModelTrainer::new(od, ad, &[8], 1e-3, &mut other_rng, &restored.device);
+    let mut restored_model =
+        ModelTrainer::new(od, ad, &[8], 1e-3, &mut other_rng, &restored.device);
     super::checkpoint::load(&ckpt, &mut restored, &mut restored_model).unwrap();
     let a = sac.update(&b, &noise);
     let r = restored.update(&b, &noise);
@@ -248,7 +281,8 @@ fn pendulum_training_beats_the_random_policy() {
     let report = Trainer::new(options, false).unwrap().run().unwrap();
     assert_eq!(report.steps, 4000);
     assert!(
-        report.eval_return_mean > report.random_return_mean + 400.0 && report.eval_return_mean > -700.0,
+        report.eval_return_mean > report.random_return_mean + 400.0
+            && report.eval_return_mean > -700.0,
         "policy {:.0} vs random {:.0}",
         report.eval_return_mean,
         report.random_return_mean
