@@ -7,6 +7,7 @@
 //! - [`serve`]: the gRPC daemon.
 //! - [`domains`]: the environments (task interface) for training and the simulator client.
 //! - [`train`]: SAC + dynamics model training (Algorithm 1) with burn.
+//! - [`render`]: pictures of domains and plans, and charts (plotters).
 //! - [`cli`]: `prac inspect` and `prac bench-replan`.
 
 pub mod bundle;
@@ -15,6 +16,7 @@ pub mod domains;
 pub mod nn;
 pub mod plan;
 pub mod policy;
+pub mod render;
 pub mod serve;
 pub mod train;
 

@@ -42,6 +42,26 @@ enum Command {
         #[arg(long, value_delimiter = ',')]
         domains: Vec<String>,
     },
+    /// Draw a domain (side view) to a PNG, optionally with a policy's imagined plan overlaid.
+    Render {
+        domain: String,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        #[arg(long)]
+        out: PathBuf,
+        /// Steps played before drawing (the policy's, else random actions).
+        #[arg(long, default_value_t = 0)]
+        steps: u32,
+        /// A bundle whose PrAC plan is drawn (predicted states as dots).
+        #[arg(long)]
+        policy: Option<PathBuf>,
+        #[arg(long, default_value_t = 0.01)]
+        epsilon_coef: f64,
+        #[arg(long, default_value_t = 800)]
+        width: u32,
+        #[arg(long, default_value_t = 500)]
+        height: u32,
+    },
     /// Train a policy with SAC and a dynamics model (Algorithm 1) and write a bundle.
     Train(Box<prac::cli::train::TrainArgs>),
     /// (Re)train a bundle's dynamics model from recorded transitions (obs, action, next_obs).
@@ -108,6 +128,25 @@ fn main() -> ExitCode {
                 )
             })
         }
+        Command::Render {
+            domain,
+            seed,
+            out,
+            steps,
+            policy,
+            epsilon_coef,
+            width,
+            height,
+        } => prac::cli::render::run(&prac::cli::render::RenderRequest {
+            domain: &domain,
+            seed,
+            out: &out,
+            steps,
+            policy: policy.as_deref(),
+            epsilon_coef,
+            size: (width.clamp(64, 4096), height.clamp(64, 4096)),
+        })
+        .map(|n| println!("wrote {} ({n} planned states drawn)", out.display())),
         Command::Train(args) => prac::cli::train::train(*args),
         Command::FitModel(args) => prac::cli::train::fit(args),
         Command::BenchTrain {

@@ -3,4 +3,5 @@
 pub mod bench;
 pub mod domains;
 pub mod inspect;
+pub mod render;
 pub mod train;

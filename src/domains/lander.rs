@@ -304,6 +304,48 @@ impl Lander {
 }
 
 impl Env for Lander {
+    fn scene(&self) -> super::Scene {
+        let ground = self.ground;
+        let mut shapes = super::scene::world_shapes(&self.world.colliders, |h| h == ground);
+        // The helipad flags, at the helipad's ends as in gym.
+        let chunk = W / (CHUNKS - 1) as f32;
+        for x in [
+            chunk * (CHUNKS / 2 - 1) as f32,
+            chunk * (CHUNKS / 2 + 1) as f32,
+        ] {
+            let (x, y) = (f64::from(x), f64::from(self.helipad_y));
+            shapes.push((
+                super::Part::Detail,
+                super::Shape::Polyline(vec![(x, y), (x, y + 50.0 / 30.0)]),
+            ));
+            shapes.push((
+                super::Part::Detail,
+                super::Shape::Polygon(vec![
+                    (x, y + 50.0 / 30.0),
+                    (x, y + 40.0 / 30.0),
+                    (x + 25.0 / 30.0, y + 45.0 / 30.0),
+                ]),
+            ));
+        }
+        super::Scene {
+            shapes,
+            center: (f64::from(W) / 2.0, f64::from(H) / 2.0),
+            width: f64::from(W),
+            height: f64::from(H),
+        }
+    }
+
+    fn trace(&self, predicted: &[f32]) -> Vec<(f64, f64)> {
+        predicted
+            .chunks_exact(8)
+            .map(|o| {
+                let x = o[0] * (W / 2.0) + W / 2.0;
+                let y = o[1] * (H / 2.0) + self.helipad_y + LEG_DOWN / SCALE;
+                (f64::from(x), f64::from(y))
+            })
+            .collect()
+    }
+
     fn spec(&self) -> &EnvSpec {
         &self.spec
     }

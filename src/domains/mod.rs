@@ -5,10 +5,12 @@
 mod lander;
 mod pendulum;
 mod planar;
+pub mod scene;
 
 pub use lander::Lander;
 pub use pendulum::Pendulum;
 pub use planar::Planar;
+pub use scene::{Part, Scene, Shape};
 
 /// What a domain is: sizes, bounds and episode length.
 #[derive(Clone, Debug, PartialEq)]
@@ -68,6 +70,13 @@ pub trait Env: Send {
     fn spec(&self) -> &EnvSpec;
     fn reset(&mut self, seed: u64, obs: &mut [f32]) -> Result<(), EnvError>;
     fn step(&mut self, action: &[f32], obs: &mut [f32]) -> Result<Transition, EnvError>;
+    /// The current state as shapes to draw.
+    fn scene(&self) -> Scene;
+    /// Points in the scene's coordinates for a sequence of predicted observations following the
+    /// current state (an imagined plan): the lander's position, a walker's torso, the pendulum's
+    /// tip. Walkers do not observe their x position, so it is integrated from the predicted
+    /// forward speed.
+    fn trace(&self, predicted: &[f32]) -> Vec<(f64, f64)>;
 }
 
 /// An angle wrapped to [-pi, pi).

@@ -57,6 +57,30 @@ impl Pendulum {
 }
 
 impl Env for Pendulum {
+    fn scene(&self) -> super::Scene {
+        // Upright is theta = 0: the tip at (sin theta, cos theta).
+        let tip = (L * self.theta.sin(), L * self.theta.cos());
+        super::Scene {
+            shapes: vec![
+                (super::Part::Ground, super::Shape::Circle((0.0, 0.0), 0.05)),
+                (
+                    super::Part::Body,
+                    super::Shape::Capsule((0.0, 0.0), tip, 0.08),
+                ),
+            ],
+            center: (0.0, 0.0),
+            width: 2.6,
+            height: 2.6,
+        }
+    }
+
+    fn trace(&self, predicted: &[f32]) -> Vec<(f64, f64)> {
+        predicted
+            .chunks_exact(3)
+            .map(|o| (L * f64::from(o[1]), L * f64::from(o[0])))
+            .collect()
+    }
+
     fn spec(&self) -> &EnvSpec {
         &self.spec
     }

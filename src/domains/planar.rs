@@ -182,7 +182,7 @@ fn cheetah() -> RobotDef {
     let (bthigh, fthigh) = (at(torso, (-0.5, 0.0)), at(torso, (0.5, 0.0)));
     let bshin = at(bthigh, (0.16, -0.25));
     let bfoot = at(bshin, (-0.28, -0.14));
-    let fshin = at(fthigh, (0.14, -0.24));
+    let fshin = at(fthigh, (-0.14, -0.24));
     let ffoot = at(fshin, (0.13, -0.18));
     let r = 0.046;
     let body = |origin: (f32, f32), capsules: Vec<Capsule>| LinkDef { origin, capsules };
@@ -464,6 +464,31 @@ fn rotate(v: Vector, angle: f32) -> Vector {
 }
 
 impl Env for Planar {
+    fn scene(&self) -> super::Scene {
+        let ground = self.ground;
+        let shapes = super::scene::world_shapes(&self.world.colliders, |h| h == ground);
+        let x = self.torso().translation().x;
+        super::Scene {
+            shapes,
+            center: (f64::from(x), 1.0),
+            width: 4.0,
+            height: 2.4,
+        }
+    }
+
+    fn trace(&self, predicted: &[f32]) -> Vec<(f64, f64)> {
+        let dt = self.spec.control_period as f32;
+        let mut x = self.torso().translation().x;
+        predicted
+            .chunks_exact(self.spec.obs_dim)
+            .map(|o| {
+                // "more" holds 0.3 vx; the speed after a step times the period approximates it.
+                x += o[3] / 0.3 * dt;
+                (f64::from(x), f64::from(o[0] + self.initial_z))
+            })
+            .collect()
+    }
+
     fn spec(&self) -> &EnvSpec {
         &self.spec
     }

@@ -1,0 +1,106 @@
+//! `prac render`: every domain draws to a PNG of the asked size; a policy's plan is overlaid.
+
+use std::process::Command;
+
+fn png_size(bytes: &[u8]) -> (u32, u32) {
+    assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n");
+    let be = |i: usize| u32::from_be_bytes([bytes[i], bytes[i + 1], bytes[i + 2], bytes[i + 3]]);
+    (be(16), be(20))
+}
+
+#[test]
+fn every_domain_renders_and_a_plan_is_overlaid() {
+    let dir = tempfile::tempdir().unwrap();
+    for domain in prac::domains::DOMAINS {
+        let out = dir.path().join(format!("{domain}.png"));
+        let run = Command::new(env!("CARGO_BIN_EXE_prac"))
+            .args([
+                "render", domain, "--seed", "2", "--width", "320", "--height", "200",
+            ])
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        assert_eq!(png_size(&std::fs::read(&out).unwrap()), (320, 200));
+        let env = prac::domains::make(domain).unwrap();
+        assert!(
+            env.scene()
+                .shapes
+                .iter()
+                .any(|(part, _)| *part == prac::domains::Part::Body),
+            "{domain} draws no body"
+        );
+    }
+    let bundle =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("bundles/pendulum.safetensors");
+    let out = dir.path().join("plan.png");
+    let run = Command::new(env!("CARGO_BIN_EXE_prac"))
+        .args([
+            "render",
+            "pendulum",
+            "--seed",
+            "3",
+            "--steps",
+            "30",
+            "--epsilon-coef",
+            "0.01",
+        ])
+        .arg("--policy")
+        .arg(&bundle)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    let drawn: usize = stdout
+        .split('(')
+        .nth(1)
+        .and_then(|s| s.split_whitespace().next())
+        .and_then(|n| n.parse().ok())
+        .unwrap();
+    assert!(drawn > 1, "{stdout}");
+    // A policy for another domain is refused.
+    let wrong = Command::new(env!("CARGO_BIN_EXE_prac"))
+        .args(["render", "lander", "--steps", "1"])
+        .arg("--policy")
+        .arg(&bundle)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(!wrong.status.success());
+    assert!(String::from_utf8_lossy(&wrong.stderr).contains("not 'lander'"));
+}
+
+#[test]
+fn traces_follow_the_predicted_observations() {
+    let mut env = prac::domains::make("pendulum").unwrap();
+    let mut obs = vec![0.0f32; 3];
+    env.reset(0, &mut obs).unwrap();
+    let theta = 0.4f32;
+    let trace = env.trace(&[theta.cos(), theta.sin(), 0.0]);
+    assert!((trace[0].0 - f64::from(theta.sin())).abs() < 1e-6);
+    assert!((trace[0].1 - f64::from(theta.cos())).abs() < 1e-6);
+
+    // The lander's trace inverts its observation's position normalisation.
+    let mut lander = prac::domains::make("lander").unwrap();
+    let mut obs = vec![0.0f32; 8];
+    lander.reset(0, &mut obs).unwrap();
+    let scene = lander.scene();
+    let start = lander.trace(&obs)[0];
+    assert!((start.0 - scene.center.0).abs() < 1.0, "{start:?}");
+    assert!(
+        start.1 > scene.center.1,
+        "the lander starts high: {start:?}"
+    );
+}
