@@ -11,6 +11,8 @@ use plotters::style::FontStyle;
 
 use crate::domains::{Part, Scene, Shape};
 
+pub mod chart;
+
 const FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
 pub const FONT_FAMILY: &str = "sans-serif";
 

@@ -3,6 +3,7 @@
 pub mod batch;
 pub mod config;
 pub mod health;
+pub mod local;
 pub mod registry;
 pub mod service;
 pub mod session;

@@ -8,7 +8,6 @@
 
 use std::collections::{BTreeMap, VecDeque};
 use std::path::PathBuf;
-use std::process::Stdio;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -19,7 +18,6 @@ use prac::proto::{self, prac_client::PracClient, session_options::Tolerance};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
-use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::sync::{Mutex, mpsc};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::transport::Channel;
@@ -194,8 +192,9 @@ impl Budget {
     }
 }
 
+/// A `prac serve` of its own on a random Hopper-sized bundle, with the folder it lives in.
 struct LocalServer {
-    child: tokio::process::Child,
+    server: prac::serve::local::LocalServer,
     _dir: tempfile::TempDir,
 }
 
@@ -203,34 +202,9 @@ async fn start_local_server(args: &Args) -> anyhow::Result<(String, LocalServer)
     let dir = tempfile::tempdir()?;
     let policy = prac::policy::Policy::random(prac::policy::hopper_sized_manifest(), 7);
     prac::bundle::save(&policy, &dir.path().join("hopper-bench.safetensors"))?;
-    let bin = match &args.prac_bin {
-        Some(bin) => bin.clone(),
-        None => std::env::current_exe()?
-            .parent()
-            .context("prac-bench has no folder")?
-            .join("prac"),
-    };
-    let mut child = tokio::process::Command::new(&bin)
-        .args(["serve", "--listen", "127.0.0.1:0", "--bundles"])
-        .arg(dir.path())
-        .args(&args.server_arg)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .kill_on_drop(true)
-        .spawn()
-        .with_context(|| {
-            format!(
-                "starting {} (build it: cargo build --release)",
-                bin.display()
-            )
-        })?;
-    let stdout = child.stdout.take().context("server stdout")?;
-    let mut line = String::new();
-    BufReader::new(stdout).read_line(&mut line).await?;
-    let Some(addr) = line.trim().strip_prefix("listening on ") else {
-        bail!("the local server did not start: {line:?}");
-    };
-    Ok((addr.to_string(), LocalServer { child, _dir: dir }))
+    let bin = prac::serve::local::prac_binary(args.prac_bin.as_deref())?;
+    let server = prac::serve::local::LocalServer::start(&bin, dir.path(), &args.server_arg).await?;
+    Ok((server.addr.clone(), LocalServer { server, _dir: dir }))
 }
 
 async fn connect(addr: &str) -> anyhow::Result<PracClient<Channel>> {
@@ -600,9 +574,8 @@ async fn run(args: Args) -> anyhow::Result<Report> {
             .close_session(proto::CloseSessionRequest { session_id: id })
             .await;
     }
-    if let Some(mut server) = local {
-        let _ = server.child.start_kill();
-        let _ = server.child.wait().await;
+    if let Some(local) = local {
+        local.server.stop().await;
     }
     let steps = total.steps.max(1) as f64;
     let q = |p: f64| total.latency.value_at_quantile(p) as f64;

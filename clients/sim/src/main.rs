@@ -1,0 +1,245 @@
+//! prac-sim: the bundled simulator client. It plays the domains against `prac serve` over
+//! StepStream (starting a local server on the bundled policies when no `--server` is given),
+//! sweeps PrAC's eps coefficient and draws the paper's Figures 3 and 4.
+
+mod curves;
+mod play;
+mod sweep;
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+use play::Tol;
+
+#[derive(Parser)]
+#[command(version, about)]
+struct Cli {
+    /// A running server (host:port); without it a local `prac serve` runs for the command.
+    #[arg(long, global = true)]
+    server: Option<String>,
+    /// Bundles for the local server.
+    #[arg(long, global = true, default_value = "bundles")]
+    bundles: PathBuf,
+    /// The `prac` binary for the local server [default: beside prac-sim].
+    #[arg(long, global = true)]
+    prac_bin: Option<PathBuf>,
+    /// Hide progress bars.
+    #[arg(long, global = true)]
+    quiet: bool,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Play a policy's domain: per-episode return, discounted return, forecast, replans.
+    Play {
+        #[arg(long)]
+        policy: String,
+        /// eps = C * (V_pi - V_rand) from the bundle's value scale.
+        #[arg(long, conflicts_with = "epsilon")]
+        epsilon_coef: Option<f64>,
+        /// Absolute eps.
+        #[arg(long)]
+        epsilon: Option<f64>,
+        #[arg(long, default_value_t = 5)]
+        episodes: usize,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Draw the first episode at --render-step with the committed plan overlaid.
+        #[arg(long)]
+        render: Option<PathBuf>,
+        #[arg(long, default_value_t = 50)]
+        render_step: u64,
+        /// Print the episodes as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Training-then-PrAC: NP, forecast and the Lemma-1 bound per eps coefficient.
+    Sweep {
+        #[arg(long)]
+        policy: String,
+        #[arg(
+            long,
+            value_delimiter = ',',
+            default_value = "0,0.001,0.003,0.005,0.008,0.01"
+        )]
+        coefs: Vec<f64>,
+        #[arg(long, default_value_t = 20)]
+        episodes: usize,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Training curves (return and forecast against steps) from `prac train` CSVs.
+    Curves {
+        #[arg(long, value_delimiter = ',', required = true)]
+        csv: Vec<PathBuf>,
+        /// Normalise returns: R_RAND,R_REF map to 0 and 1.
+        #[arg(long, value_name = "R_RAND,R_REF", allow_hyphen_values = true)]
+        normalize: Option<String>,
+        #[arg(long)]
+        out: PathBuf,
+    },
+}
+
+pub fn progress(total: u64, show: bool) -> indicatif::ProgressBar {
+    let bar = if show {
+        indicatif::ProgressBar::new(total)
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:30}] {pos}/{len} episodes {msg}",
+        )
+        .expect("a valid template")
+        .progress_chars("=> "),
+    );
+    bar
+}
+
+fn parse_pair(text: &str) -> anyhow::Result<(f64, f64)> {
+    let v: Vec<f64> = text
+        .split(',')
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| anyhow::anyhow!("expected two numbers A,B, got '{text}'"))?;
+    match v[..] {
+        [a, b] if a.is_finite() && b.is_finite() && a != b => Ok((a, b)),
+        _ => anyhow::bail!("expected two different numbers A,B, got '{text}'"),
+    }
+}
+
+async fn run(cli: Cli) -> anyhow::Result<()> {
+    if let Command::Curves {
+        csv,
+        normalize,
+        out,
+    } = &cli.command
+    {
+        let normalize = normalize.as_deref().map(parse_pair).transpose()?;
+        print!("{}", curves::write(csv, normalize, out)?);
+        println!("wrote {}", out.join("curves.png").display());
+        return Ok(());
+    }
+    let local = match &cli.server {
+        Some(_) => None,
+        None => {
+            let bin = prac::serve::local::prac_binary(cli.prac_bin.as_deref())?;
+            Some(prac::serve::local::LocalServer::start(&bin, &cli.bundles, &[]).await?)
+        }
+    };
+    let addr = cli
+        .server
+        .clone()
+        .or_else(|| local.as_ref().map(|l| l.addr.clone()))
+        .unwrap_or_default();
+    let mut client = play::connect(&addr).await?;
+    let outcome = match &cli.command {
+        Command::Play {
+            policy,
+            epsilon_coef,
+            epsilon,
+            episodes,
+            seed,
+            render,
+            render_step,
+            json,
+        } => {
+            let info = play::policy_info(&mut client, policy).await?;
+            let tol = match (epsilon, epsilon_coef) {
+                (Some(e), _) => Tol::Absolute(*e),
+                (None, Some(c)) => Tol::Coef(*c),
+                (None, None) => Tol::Absolute(0.0),
+            };
+            let bar = progress(*episodes as u64, !cli.quiet && !json);
+            let mut results = Vec::new();
+            for k in 0..*episodes as u64 {
+                let snap_at = (k == 0 && render.is_some()).then_some(*render_step);
+                let (result, snapshot) =
+                    play::play_episode(&mut client, &info, tol, seed + k, snap_at).await?;
+                if let (Some(out), Some(snap)) = (render, snapshot) {
+                    play::render(
+                        &snap,
+                        &format!(
+                            "{} | step {} | plan of {}",
+                            info.name,
+                            snap.step,
+                            snap.trace.len()
+                        ),
+                        out,
+                    )?;
+                    bar.suspend(|| eprintln!("wrote {}", out.display()));
+                }
+                if !json {
+                    bar.suspend(|| {
+                        println!(
+                            "episode {k} (seed {}): return {:.2}, discounted {:.3}, {} steps, forecast {:.2}, replans/step {:.3}",
+                            result.seed, result.ret, result.discounted, result.steps, result.forecast, result.replans_per_step
+                        )
+                    });
+                }
+                bar.inc(1);
+                results.push(result);
+            }
+            bar.finish_and_clear();
+            if *json {
+                println!("{}", serde_json::to_string_pretty(&results)?);
+            } else {
+                let mean = |f: fn(&play::EpisodeResult) -> f64| {
+                    prac::train::eval::mean_std(&results.iter().map(f).collect::<Vec<_>>())
+                };
+                let (r, rs) = mean(|e| e.ret);
+                let (f, fs) = mean(|e| e.forecast);
+                println!(
+                    "{} episodes: return {r:.2} +- {rs:.2}, forecast {f:.2} +- {fs:.2}",
+                    results.len()
+                );
+            }
+            Ok(())
+        }
+        Command::Sweep {
+            policy,
+            coefs,
+            episodes,
+            seed,
+            out,
+        } => {
+            anyhow::ensure!(
+                coefs.iter().all(|c| c.is_finite() && *c >= 0.0),
+                "--coefs must be >= 0"
+            );
+            anyhow::ensure!(*episodes >= 2, "--episodes must be >= 2");
+            let info = play::policy_info(&mut client, policy).await?;
+            let result = sweep::run(&client, &info, coefs, *episodes, *seed, !cli.quiet).await?;
+            sweep::write(&result, out)?;
+            print!("{}", std::fs::read_to_string(out.join("sweep.md"))?);
+            Ok(())
+        }
+        Command::Curves { .. } => unreachable!("handled above"),
+    };
+    if let Some(local) = local {
+        local.stop().await;
+    }
+    outcome
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .expect("a tokio runtime");
+    match runtime.block_on(run(cli)) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

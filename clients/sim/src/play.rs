@@ -1,0 +1,215 @@
+//! Playing a domain against the server: one session and one StepStream per episode; the
+//! environment runs here, the server decides (PrAC) and reports its forecast.
+
+use std::path::Path;
+
+use anyhow::{Context, bail};
+use prac::proto::prac_client::PracClient;
+use prac::proto::session_options::Tolerance;
+use prac::proto::{self, PolicyInfo};
+use serde::Serialize;
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::transport::Channel;
+
+pub type Client = PracClient<Channel>;
+
+pub async fn connect(addr: &str) -> anyhow::Result<Client> {
+    let target = if addr.starts_with("http") {
+        addr.to_string()
+    } else {
+        format!("http://{addr}")
+    };
+    let channel = Channel::from_shared(target)?
+        .tcp_nodelay(true)
+        .connect()
+        .await
+        .with_context(|| format!("connecting to {addr}"))?;
+    Ok(PracClient::new(channel))
+}
+
+/// The policy's description, waiting up to 20 s for a starting server to load its bundles.
+pub async fn policy_info(client: &mut Client, name: &str) -> anyhow::Result<PolicyInfo> {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(20);
+    loop {
+        if let Ok(listed) = client.list_policies(proto::ListPoliciesRequest {}).await {
+            let listed = listed.into_inner().policies;
+            if let Some(p) = listed.iter().find(|p| p.name == name) {
+                return Ok(p.clone());
+            }
+            if !listed.is_empty() {
+                let names: Vec<&str> = listed.iter().map(|p| p.name.as_str()).collect();
+                bail!(
+                    "the server has no policy '{name}'; it serves: {}",
+                    names.join(", ")
+                );
+            }
+        }
+        if std::time::Instant::now() > deadline {
+            bail!("the server listed no policies within 20 s");
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+    }
+}
+
+/// How eps is given to the server.
+#[derive(Clone, Copy, Debug)]
+pub enum Tol {
+    Coef(f64),
+    Absolute(f64),
+}
+
+/// One played episode, as the client saw it.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct EpisodeResult {
+    pub seed: u64,
+    pub steps: u64,
+    pub ret: f64,
+    pub discounted: f64,
+    /// Mean of the server's f_t over the episode.
+    pub forecast: f64,
+    /// Steps at which the old plan broke (a replan), per step.
+    pub replans_per_step: f64,
+    /// Steps where f_t computed from the forecast's decided_at differs from the server's f_t.
+    pub accounting_mismatches: u64,
+    /// Steps whose action differs from the one committed for it at the previous step although
+    /// the server said it kept that action.
+    pub commitment_violations: u64,
+}
+
+/// A frame to draw: the state after `step` steps and the committed predicted observations.
+pub struct Snapshot {
+    pub scene: prac::domains::Scene,
+    pub trace: Vec<(f64, f64)>,
+    pub step: u64,
+}
+
+/// Plays one episode from `seed`; when `snapshot_at` is set, captures that step's frame.
+pub async fn play_episode(
+    client: &mut Client,
+    info: &PolicyInfo,
+    tol: Tol,
+    seed: u64,
+    snapshot_at: Option<u64>,
+) -> anyhow::Result<(EpisodeResult, Option<Snapshot>)> {
+    let Some(mut env) = prac::domains::make(&info.domain) else {
+        bail!(
+            "policy '{}' is for domain '{}', which this client cannot play",
+            info.name,
+            info.domain
+        );
+    };
+    let spec = env.spec().clone();
+    if spec.obs_dim != info.obs_dim as usize || spec.act_dim != info.act_dim as usize {
+        bail!(
+            "policy '{}' has dims {}/{}, domain '{}' has {}/{}",
+            info.name,
+            info.obs_dim,
+            info.act_dim,
+            spec.name,
+            spec.obs_dim,
+            spec.act_dim
+        );
+    }
+    let options = proto::SessionOptions {
+        tolerance: Some(match tol {
+            Tol::Coef(c) => Tolerance::EpsilonCoef(c),
+            Tol::Absolute(e) => Tolerance::Epsilon(e),
+        }),
+        seed,
+        ..Default::default()
+    };
+    let session = client
+        .open_session(proto::OpenSessionRequest {
+            policy: info.name.clone(),
+            options: Some(options),
+        })
+        .await
+        .map_err(|s| anyhow::anyhow!("OpenSession: {}", s.message()))?
+        .into_inner()
+        .session_id;
+    let (tx, rx) = mpsc::channel(2);
+    let mut responses = client
+        .step_stream(ReceiverStream::new(rx))
+        .await
+        .map_err(|s| anyhow::anyhow!("StepStream: {}", s.message()))?
+        .into_inner();
+
+    let mut obs = vec![0.0; spec.obs_dim];
+    env.reset(seed, &mut obs)?;
+    let mut result = EpisodeResult {
+        seed,
+        ..EpisodeResult::default()
+    };
+    let (mut discount, mut forecast_sum, mut replans) = (1.0, 0.0, 0u64);
+    let mut committed_next: Option<Vec<f32>> = None;
+    let mut snapshot = None;
+    loop {
+        tx.send(proto::StepRequest {
+            session_id: session.clone(),
+            observation: obs.clone(),
+            new_episode: result.steps == 0,
+        })
+        .await
+        .context("the step stream closed")?;
+        let response = responses
+            .message()
+            .await
+            .map_err(|s| {
+                anyhow::anyhow!("step {}: {} ({:?})", result.steps, s.message(), s.code())
+            })?
+            .context("the server ended the step stream")?;
+        let first = response
+            .forecast
+            .first()
+            .context("a response without a forecast")?;
+        if response.step + 1 - first.decided_at != response.f_t {
+            result.accounting_mismatches += 1;
+        }
+        if response.broke_at.is_some() {
+            replans += 1;
+        }
+        if let Some(expected) = &committed_next
+            && response.kept > 0
+            && *expected != response.action
+        {
+            result.commitment_violations += 1;
+        }
+        committed_next = response.forecast.get(1).map(|p| p.action.clone());
+        forecast_sum += response.f_t as f64;
+        if snapshot_at == Some(result.steps) {
+            let predicted: Vec<f32> = response
+                .forecast
+                .iter()
+                .flat_map(|p| p.predicted_observation.iter().copied())
+                .collect();
+            snapshot = Some(Snapshot {
+                scene: env.scene(),
+                trace: env.trace(&predicted),
+                step: result.steps,
+            });
+        }
+        let step = env.step(&response.action, &mut obs)?;
+        result.ret += step.reward;
+        result.discounted += discount * step.reward;
+        discount *= info.gamma;
+        result.steps += 1;
+        if step.terminated || step.truncated {
+            break;
+        }
+    }
+    drop(tx);
+    let _ = client
+        .close_session(proto::CloseSessionRequest {
+            session_id: session,
+        })
+        .await;
+    result.forecast = forecast_sum / result.steps as f64;
+    result.replans_per_step = replans as f64 / result.steps as f64;
+    Ok((result, snapshot))
+}
+
+/// Draws a snapshot with its plan.
+pub fn render(snapshot: &Snapshot, caption: &str, out: &Path) -> anyhow::Result<()> {
+    prac::render::render_scene(&snapshot.scene, &snapshot.trace, caption, out, (800, 500))
+}

@@ -1,0 +1,161 @@
+//! prac-sim against a real `prac serve` it starts itself (target/<profile>/prac, built by the
+//! workspace's tests) on the shipped pendulum bundle.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+fn sim(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_prac-sim"))
+        .arg("--bundles")
+        .arg(root().join("bundles"))
+        .arg("--quiet")
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn play_accounts_the_forecast_as_the_server_reports_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let png = dir.path().join("frame.png");
+    let out = sim(&[
+        "play",
+        "--policy",
+        "pendulum",
+        "--epsilon-coef",
+        "0.01",
+        "--episodes",
+        "3",
+        "--seed",
+        "5",
+        "--json",
+        "--render",
+        png.to_str().unwrap(),
+        "--render-step",
+        "10",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let episodes: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let episodes = episodes.as_array().unwrap();
+    assert_eq!(episodes.len(), 3);
+    for e in episodes {
+        assert_eq!(e["steps"], 200);
+        // f_t from each forecast's decided_at equals the server's f_t, and every kept action
+        // was executed as committed one step earlier.
+        assert_eq!(e["accounting_mismatches"], 0);
+        assert_eq!(e["commitment_violations"], 0);
+        let forecast = e["forecast"].as_f64().unwrap();
+        assert!(forecast > 2.0 && forecast <= 32.0, "{e}");
+        assert!(e["ret"].as_f64().unwrap() > -1000.0, "{e}");
+    }
+    assert!(std::fs::read(&png).unwrap().starts_with(b"\x89PNG"));
+
+    // eps = 0: a fresh decision at every step, forecast 1 except where the policy's plan was
+    // kept because pi(s) itself passes the test with equality.
+    let out = sim(&[
+        "play",
+        "--policy",
+        "pendulum",
+        "--epsilon",
+        "0",
+        "--episodes",
+        "1",
+        "--json",
+    ]);
+    assert!(out.status.success());
+    let e: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!(e[0]["forecast"].as_f64().unwrap() < 2.0);
+
+    let out = sim(&["play", "--policy", "nope"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("no policy 'nope'"));
+}
+
+fn column(text: &str, name: &str) -> Vec<f64> {
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let i = header.iter().position(|h| *h == name).unwrap();
+    lines
+        .map(|l| l.split(',').nth(i).unwrap().parse().unwrap())
+        .collect()
+}
+
+#[test]
+fn sweep_writes_sane_files_and_curves_draw() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = sim(&[
+        "sweep",
+        "--policy",
+        "pendulum",
+        "--coefs",
+        "0,0.003,0.01",
+        "--episodes",
+        "20",
+        "--out",
+        dir.path().to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let csv = std::fs::read_to_string(dir.path().join("sweep.csv")).unwrap();
+    let (np, np_std) = (column(&csv, "np"), column(&csv, "np_std"));
+    let forecast = column(&csv, "forecast");
+    let bound = column(&csv, "bound");
+    // NP at coefficient 0 is 1 within noise: V_pi comes from 20 other episodes, so allow three
+    // standard errors of the difference of two 20-episode means.
+    let se = np_std[0] * (2.0f64 / 20.0).sqrt();
+    assert!(
+        (np[0] - 1.0).abs() <= 3.0 * se + 0.02,
+        "NP(0) = {} +- {}",
+        np[0],
+        np_std[0]
+    );
+    assert!(forecast[0] < forecast[2], "forecast {forecast:?}");
+    assert!((forecast[1] + forecast[2]) / 2.0 >= forecast[0]);
+    assert_eq!(bound[0], 1.0);
+    assert!((bound[2] - 0.5).abs() < 1e-9, "1 - 0.01 / (1 - 0.98)");
+    // The Lemma-1 bound holds in expectation here (the paper's claim).
+    for k in 0..np.len() {
+        assert!(
+            np[k] >= bound[k] - 3.0 * np_std[k] / 20f64.sqrt(),
+            "row {k}"
+        );
+    }
+    for file in ["sweep.md", "sweep.png"] {
+        assert!(
+            dir.path().join(file).metadata().unwrap().len() > 100,
+            "{file}"
+        );
+    }
+
+    // Figure 4 from the shipped pendulum training curve.
+    let curves = sim(&[
+        "curves",
+        "--csv",
+        root().join("bundles/pendulum.train.csv").to_str().unwrap(),
+        "--normalize=-1237,-137",
+        "--out",
+        dir.path().to_str().unwrap(),
+    ]);
+    assert!(
+        curves.status.success(),
+        "{}",
+        String::from_utf8_lossy(&curves.stderr)
+    );
+    assert!(String::from_utf8_lossy(&curves.stdout).contains("pendulum: 60 episodes"));
+    assert!(
+        std::fs::read(dir.path().join("curves.png"))
+            .unwrap()
+            .starts_with(b"\x89PNG")
+    );
+}
