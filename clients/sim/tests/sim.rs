@@ -159,3 +159,47 @@ fn sweep_writes_sane_files_and_curves_draw() {
             .starts_with(b"\x89PNG")
     );
 }
+
+#[test]
+fn play_drives_a_rapier_domain_with_an_untrained_lander_policy() {
+    // Random weights of the SAC architecture for the lander's sizes: the client and server
+    // plumbing on a physics domain, whatever the policy's quality.
+    let dir = tempfile::tempdir().unwrap();
+    let mut manifest = prac::policy::test_manifest(
+        "lander-untrained",
+        "lander",
+        8,
+        2,
+        &[64, 64],
+        &[64, 64, 64, 64],
+    );
+    manifest.provenance.trainer = "random init (prac-sim test)".into();
+    let policy = prac::policy::Policy::random(manifest, 11);
+    prac::bundle::save(&policy, &dir.path().join("lander-untrained.safetensors")).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_prac-sim"))
+        .arg("--bundles")
+        .arg(dir.path())
+        .args([
+            "--quiet",
+            "play",
+            "--policy",
+            "lander-untrained",
+            "--epsilon-coef",
+            "0.01",
+        ])
+        .args(["--episodes", "2", "--json"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let episodes: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    for e in episodes.as_array().unwrap() {
+        let steps = e["steps"].as_u64().unwrap();
+        assert!((1..=1000).contains(&steps), "{e}");
+        assert_eq!(e["accounting_mismatches"], 0);
+        assert_eq!(e["commitment_violations"], 0);
+    }
+}
