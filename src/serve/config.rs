@@ -64,6 +64,11 @@ pub struct ServeArgs {
     /// Batch worker threads [default: 2].
     #[arg(long)]
     pub batch_workers: Option<usize>,
+    /// File of bearer tokens, one per line: every prac.v1 call must carry
+    /// `authorization: Bearer TOKEN`, and a session belongs to the token that opened it
+    /// [default: no auth].
+    #[arg(long)]
+    pub auth_tokens: Option<PathBuf>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -82,6 +87,7 @@ struct FileConfig {
     batch_window: Option<String>,
     batch_queue: Option<usize>,
     batch_workers: Option<usize>,
+    auth_tokens: Option<PathBuf>,
 }
 
 /// The settings in force.
@@ -98,6 +104,7 @@ pub struct ServeConfig {
     pub max_horizon_limit: usize,
     /// Cross-session batching; None when off.
     pub batch: Option<BatchConfig>,
+    pub auth_tokens: Option<PathBuf>,
 }
 
 /// The repository's bundle directory, which the training issues fill.
@@ -123,6 +130,7 @@ impl Default for ServeConfig {
                 queue: 4096,
                 workers: 2,
             }),
+            auth_tokens: None,
         }
     }
 }
@@ -173,6 +181,7 @@ impl ServeConfig {
                 .or(file.max_horizon_limit)
                 .unwrap_or(d.max_horizon_limit),
             batch: None,
+            auth_tokens: args.auth_tokens.clone().or(file.auth_tokens),
         };
         let db = d.batch.expect("batching is on by default");
         let max_batch = args.batch_max.or(file.batch_max).unwrap_or(db.max_batch);

@@ -1,5 +1,6 @@
 //! `prac serve`: the gRPC daemon.
 
+pub mod auth;
 pub mod batch;
 pub mod config;
 pub mod health;
@@ -67,6 +68,12 @@ async fn termination_signal() {
 /// Runs the server until SIGINT/SIGTERM. Prints `listening on ADDR` on stdout once bound (port 0
 /// picks a free port; scripts and tests read that line).
 pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
+    // A bad token file stops the server: starting without the auth it was asked for is worse.
+    let auth = config
+        .auth_tokens
+        .as_deref()
+        .map(auth::Tokens::load)
+        .transpose()?;
     let listener = TcpListener::bind(config.listen)
         .await
         .with_context(|| format!("cannot listen on {}", config.listen))?;
@@ -103,6 +110,7 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
         max_message_bytes: config.max_message_bytes,
         shutdown: shutdown.clone(),
         batcher: config.batch.map(batch::Batcher::start),
+        auth,
     });
     let prac = PracServer::new(PracService {
         state: state.clone(),

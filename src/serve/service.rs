@@ -30,6 +30,8 @@ pub struct ServerState {
     pub shutdown: CancellationToken,
     /// Cross-session batching; None replans each step in its request handler.
     pub batcher: Option<Batcher>,
+    /// Bearer tokens; None when auth is off.
+    pub auth: Option<super::auth::Tokens>,
 }
 
 impl From<SessionError> for Status {
@@ -39,6 +41,7 @@ impl From<SessionError> for Status {
             SessionError::NotFound(_) | SessionError::Closed { .. } => Status::not_found(message),
             SessionError::Expired { .. } => Status::failed_precondition(message),
             SessionError::CapReached(_) => Status::resource_exhausted(message),
+            SessionError::NotOwner(_) => Status::permission_denied(message),
         }
     }
 }
@@ -103,8 +106,16 @@ impl ServerState {
             .ok_or_else(|| Status::unavailable("the server is still loading its bundles; retry"))
     }
 
-    async fn step(&self, request: proto::StepRequest) -> Result<proto::StepResponse, Status> {
-        let slot = self.sessions.get(&request.session_id)?;
+    fn caller(&self, metadata: &tonic::metadata::MetadataMap) -> Result<Option<String>, Status> {
+        super::auth::caller(self.auth.as_ref(), metadata)
+    }
+
+    async fn step(
+        &self,
+        request: proto::StepRequest,
+        caller: Option<&str>,
+    ) -> Result<proto::StepResponse, Status> {
+        let slot = self.sessions.get(&request.session_id, caller)?;
         if let Some(batcher) = &self.batcher {
             return batcher.step(slot, request).await;
         }
@@ -150,8 +161,9 @@ const STREAM_BUFFER: usize = 8;
 impl Prac for PracService {
     async fn list_policies(
         &self,
-        _request: Request<proto::ListPoliciesRequest>,
+        request: Request<proto::ListPoliciesRequest>,
     ) -> Result<Response<proto::ListPoliciesResponse>, Status> {
+        self.state.caller(request.metadata())?;
         let registry = self.state.registry()?;
         let policies = registry.iter().map(|(n, p)| policy_info(n, p)).collect();
         Ok(Response::new(proto::ListPoliciesResponse { policies }))
@@ -161,6 +173,7 @@ impl Prac for PracService {
         &self,
         request: Request<proto::OpenSessionRequest>,
     ) -> Result<Response<proto::OpenSessionResponse>, Status> {
+        let owner = self.state.caller(request.metadata())?;
         let request = request.into_inner();
         let registry = self.state.registry()?;
         let Some(policy) = registry.get(&request.policy) else {
@@ -189,9 +202,9 @@ impl Prac for PracService {
             )));
         }
         let id = new_session_id();
-        self.state
-            .sessions
-            .insert(Session::new(id.clone(), policy.clone(), settings))?;
+        let mut session = Session::new(id.clone(), policy.clone(), settings);
+        session.owner = owner;
+        self.state.sessions.insert(session)?;
         tracing::debug!(session = %id, policy = %request.policy, "session opened");
         Ok(Response::new(proto::OpenSessionResponse {
             session_id: id,
@@ -204,7 +217,11 @@ impl Prac for PracService {
         &self,
         request: Request<proto::CloseSessionRequest>,
     ) -> Result<Response<proto::CloseSessionResponse>, Status> {
-        let slot = self.state.sessions.close(&request.get_ref().session_id)?;
+        let caller = self.state.caller(request.metadata())?;
+        let slot = self
+            .state
+            .sessions
+            .close(&request.get_ref().session_id, caller.as_deref())?;
         let steps = slot.lock().steps_served();
         Ok(Response::new(proto::CloseSessionResponse { steps }))
     }
@@ -213,8 +230,9 @@ impl Prac for PracService {
         &self,
         request: Request<proto::StepRequest>,
     ) -> Result<Response<proto::StepResponse>, Status> {
+        let caller = self.state.caller(request.metadata())?;
         self.state
-            .step(request.into_inner())
+            .step(request.into_inner(), caller.as_deref())
             .await
             .map(Response::new)
     }
@@ -225,6 +243,7 @@ impl Prac for PracService {
         &self,
         request: Request<Streaming<proto::StepRequest>>,
     ) -> Result<Response<Self::StepStreamStream>, Status> {
+        let caller = self.state.caller(request.metadata())?;
         let mut inbound = request.into_inner();
         let (tx, rx) = mpsc::channel(STREAM_BUFFER);
         let state = self.state.clone();
@@ -245,7 +264,7 @@ impl Prac for PracService {
                                 break;
                             }
                         };
-                        let response = state.step(request).await;
+                        let response = state.step(request, caller.as_deref()).await;
                         let failed = response.is_err();
                         if !send(&tx, response, &state.shutdown).await {
                             let _ = tx.try_send(Err(shutting_down()));
@@ -266,7 +285,11 @@ impl Prac for PracService {
         &self,
         request: Request<proto::GetPlanRequest>,
     ) -> Result<Response<proto::Plan>, Status> {
-        let slot = self.state.sessions.get(&request.get_ref().session_id)?;
+        let caller = self.state.caller(request.metadata())?;
+        let slot = self
+            .state
+            .sessions
+            .get(&request.get_ref().session_id, caller.as_deref())?;
         let plan = slot.lock().plan_proto();
         Ok(Response::new(plan))
     }
@@ -277,8 +300,9 @@ impl Prac for PracService {
         &self,
         request: Request<proto::WatchPlanRequest>,
     ) -> Result<Response<Self::WatchPlanStream>, Status> {
+        let caller = self.state.caller(request.metadata())?;
         let id = request.into_inner().session_id;
-        let slot = self.state.sessions.get(&id)?;
+        let slot = self.state.sessions.get(&id, caller.as_deref())?;
         let (current, mut updates) = {
             let session = slot.lock();
             (session.plan_proto(), session.watch())
@@ -303,7 +327,7 @@ impl Prac for PracService {
                     changed = updates.changed() => {
                         if changed.is_err() {
                             // The session ended: say how (closed, expired).
-                            let why = state.sessions.get(&id).err().map(Status::from);
+                            let why = state.sessions.get(&id, caller.as_deref()).err().map(Status::from);
                             if let Some(status) = why {
                                 send(&tx, Err(status), shutdown).await;
                             }

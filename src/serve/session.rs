@@ -147,6 +147,8 @@ pub struct StepReport {
 
 pub struct Session {
     pub id: String,
+    /// The caller that opened it (with auth on); only it may use the session.
+    pub owner: Option<String>,
     pub policy: Arc<Policy>,
     pub settings: SessionSettings,
     rng: ChaCha8Rng,
@@ -175,6 +177,7 @@ impl Session {
             step: None,
             episode: 0,
             steps_served: 0,
+            owner: None,
             id,
             policy,
             settings,
@@ -358,11 +361,14 @@ pub enum SessionError {
     },
     #[error("the server holds its maximum of {0} sessions; close one or retry later")]
     CapReached(usize),
+    #[error("session '{0}' belongs to another client")]
+    NotOwner(String),
 }
 
 pub struct SessionSlot {
     /// The session's policy (also in the session), readable without the lock.
     pub policy: Arc<Policy>,
+    pub owner: Option<String>,
     session: Mutex<Session>,
     last_used_ms: AtomicU64,
 }
@@ -447,6 +453,7 @@ impl Sessions {
             id,
             Arc::new(SessionSlot {
                 policy: session.policy.clone(),
+                owner: session.owner.clone(),
                 session: Mutex::new(session),
                 last_used_ms: AtomicU64::new(self.now_ms()),
             }),
@@ -454,10 +461,11 @@ impl Sessions {
         Ok(())
     }
 
-    /// The live session with this id, marked as used now.
-    pub fn get(&self, id: &str) -> Result<Arc<SessionSlot>, SessionError> {
+    /// The live session with this id, marked as used now, if `caller` owns it.
+    pub fn get(&self, id: &str, caller: Option<&str>) -> Result<Arc<SessionSlot>, SessionError> {
         let slot = self.slots().get(id).cloned();
         match slot {
+            Some(slot) if slot.owner.as_deref() != caller => Err(SessionError::NotOwner(shown(id))),
             Some(slot) => {
                 slot.last_used_ms.store(self.now_ms(), Ordering::Relaxed);
                 Ok(slot)
@@ -494,8 +502,17 @@ impl Sessions {
         t.ended.insert(id, ended);
     }
 
-    pub fn close(&self, id: &str) -> Result<Arc<SessionSlot>, SessionError> {
-        let removed = self.slots().remove(id);
+    pub fn close(&self, id: &str, caller: Option<&str>) -> Result<Arc<SessionSlot>, SessionError> {
+        let removed = {
+            let mut slots = self.slots();
+            match slots.get(id) {
+                Some(slot) if slot.owner.as_deref() != caller => {
+                    return Err(SessionError::NotOwner(shown(id)));
+                }
+                Some(_) => slots.remove(id),
+                None => None,
+            }
+        };
         match removed {
             Some(slot) => {
                 self.bury(

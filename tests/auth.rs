@@ -1,0 +1,122 @@
+//! Bearer-token auth against the real server: calls without a valid token are UNAUTHENTICATED,
+//! a session belongs to the token that opened it (another token gets PERMISSION_DENIED), and
+//! health stays open for probes.
+
+mod common;
+
+use common::{OBS, Server, bundle_dir};
+use prac::proto;
+use tonic::Code;
+use tonic::metadata::MetadataValue;
+
+const ALICE: &str = "alice-7f3c9a0d5e21b864";
+const BOB: &str = "bob-0a9e8d7c6b5a4f3e";
+
+fn with_token<T>(message: T, token: Option<&str>) -> tonic::Request<T> {
+    let mut request = tonic::Request::new(message);
+    if let Some(token) = token {
+        let value: MetadataValue<_> = format!("Bearer {token}").parse().unwrap();
+        request.metadata_mut().insert("authorization", value);
+    }
+    request
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sessions_belong_to_the_token_that_opened_them() {
+    let bundles = bundle_dir();
+    let tokens = bundles.path().join("tokens.txt");
+    std::fs::write(&tokens, format!("# operators\n{ALICE}\n{BOB}\n")).unwrap();
+    let server = Server::start(bundles.path(), &["--auth-tokens", tokens.to_str().unwrap()]);
+    // Health needs no token.
+    server.wait_serving().await;
+    let mut client = server.client().await;
+
+    for token in [None, Some("mallory-0000000000000000")] {
+        let status = client
+            .list_policies(with_token(proto::ListPoliciesRequest {}, token))
+            .await
+            .unwrap_err();
+        assert_eq!(status.code(), Code::Unauthenticated, "{status:?}");
+    }
+    let open = proto::OpenSessionRequest {
+        policy: "toy".into(),
+        options: None,
+    };
+    assert_eq!(
+        client
+            .open_session(with_token(open.clone(), None))
+            .await
+            .unwrap_err()
+            .code(),
+        Code::Unauthenticated
+    );
+    let session = client
+        .open_session(with_token(open, Some(ALICE)))
+        .await
+        .unwrap()
+        .into_inner()
+        .session_id;
+    let step = proto::StepRequest {
+        session_id: session.clone(),
+        observation: vec![0.1; OBS],
+        new_episode: true,
+    };
+    // Bob holds a valid token but not this session: the leaked id is useless to him.
+    let denied = client
+        .step(with_token(step.clone(), Some(BOB)))
+        .await
+        .unwrap_err();
+    assert_eq!(denied.code(), Code::PermissionDenied, "{denied:?}");
+    let get = proto::GetPlanRequest {
+        session_id: session.clone(),
+    };
+    assert_eq!(
+        client
+            .get_plan(with_token(get.clone(), Some(BOB)))
+            .await
+            .unwrap_err()
+            .code(),
+        Code::PermissionDenied
+    );
+    let close = proto::CloseSessionRequest {
+        session_id: session.clone(),
+    };
+    assert_eq!(
+        client
+            .close_session(with_token(close.clone(), Some(BOB)))
+            .await
+            .unwrap_err()
+            .code(),
+        Code::PermissionDenied
+    );
+    // Bob's attempts changed nothing: Alice's session is open and steps from 0.
+    let response = client
+        .step(with_token(step, Some(ALICE)))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(response.step, 0);
+    assert!(client.get_plan(with_token(get, Some(ALICE))).await.is_ok());
+    let closed = client
+        .close_session(with_token(close, Some(ALICE)))
+        .await
+        .unwrap();
+    assert_eq!(closed.into_inner().steps, 1);
+}
+
+#[test]
+fn a_bad_token_file_stops_the_server() {
+    let bundles = bundle_dir();
+    let tokens = bundles.path().join("tokens.txt");
+    std::fs::write(&tokens, "short\n").unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_prac"))
+        .args(["serve", "--listen", "127.0.0.1:0", "--auth-tokens"])
+        .arg(&tokens)
+        .arg("--bundles")
+        .arg(bundles.path())
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(out.stdout.is_empty(), "it never listened");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("at least 16 characters"));
+}
