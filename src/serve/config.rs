@@ -69,6 +69,12 @@ pub struct ServeArgs {
     /// [default: no auth].
     #[arg(long)]
     pub auth_tokens: Option<PathBuf>,
+    /// PEM certificate chain: serve TLS (with --tls-key) [default: plaintext].
+    #[arg(long, requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// PEM private key of --tls-cert.
+    #[arg(long, requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -88,6 +94,8 @@ struct FileConfig {
     batch_queue: Option<usize>,
     batch_workers: Option<usize>,
     auth_tokens: Option<PathBuf>,
+    tls_cert: Option<PathBuf>,
+    tls_key: Option<PathBuf>,
 }
 
 /// The settings in force.
@@ -105,6 +113,8 @@ pub struct ServeConfig {
     /// Cross-session batching; None when off.
     pub batch: Option<BatchConfig>,
     pub auth_tokens: Option<PathBuf>,
+    /// Certificate chain and key (PEM) when serving TLS.
+    pub tls: Option<(PathBuf, PathBuf)>,
 }
 
 /// The repository's bundle directory, which the training issues fill.
@@ -131,6 +141,7 @@ impl Default for ServeConfig {
                 workers: 2,
             }),
             auth_tokens: None,
+            tls: None,
         }
     }
 }
@@ -182,6 +193,14 @@ impl ServeConfig {
                 .unwrap_or(d.max_horizon_limit),
             batch: None,
             auth_tokens: args.auth_tokens.clone().or(file.auth_tokens),
+            tls: match (
+                args.tls_cert.clone().or(file.tls_cert),
+                args.tls_key.clone().or(file.tls_key),
+            ) {
+                (Some(cert), Some(key)) => Some((cert, key)),
+                (None, None) => None,
+                _ => anyhow::bail!("tls_cert and tls_key go together"),
+            },
         };
         let db = d.batch.expect("batching is on by default");
         let max_batch = args.batch_max.or(file.batch_max).unwrap_or(db.max_batch);

@@ -74,6 +74,16 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
         .as_deref()
         .map(auth::Tokens::load)
         .transpose()?;
+    let tls = match &config.tls {
+        Some((cert, key)) => {
+            let read = |p: &std::path::Path| {
+                std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))
+            };
+            let identity = tonic::transport::Identity::from_pem(read(cert)?, read(key)?);
+            Some(tonic::transport::ServerTlsConfig::new().identity(identity))
+        }
+        None => None,
+    };
     let listener = TcpListener::bind(config.listen)
         .await
         .with_context(|| format!("cannot listen on {}", config.listen))?;
@@ -124,7 +134,13 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
             let _ = stream.set_nodelay(true);
         })
     });
-    let server = tonic::transport::Server::builder()
+    let mut builder = tonic::transport::Server::builder();
+    if let Some(tls) = tls {
+        builder = builder
+            .tls_config(tls)
+            .context("the TLS certificate or key is not valid PEM")?;
+    }
+    let server = builder
         .add_service(health_service)
         .add_service(reflection)
         .add_service(prac)
