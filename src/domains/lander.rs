@@ -27,6 +27,14 @@ const LEG_DOWN: f32 = 18.0;
 const LEG_W: f32 = 2.0;
 const LEG_H: f32 = 8.0;
 const LEG_SPRING_TORQUE: f32 = 40.0;
+/// Box2D's motor is a rigid velocity constraint capped at the max torque; a stiff damper
+/// reproduces it (softer than 100 and the legs fold on landing). The legs are multibody links:
+/// rapier's impulse-joint motor between two dynamic bodies gives way under ground contact (the
+/// legs fold flat whatever the torque).
+const LEG_MOTOR_DAMPING: f32 = 200.0;
+const SOLVER_ITERATIONS: usize = 24;
+/// The legs' extended joint limit (rad).
+const LEG_REST_ANGLE: f32 = 0.4;
 const SIDE_ENGINE_HEIGHT: f32 = 14.0;
 const SIDE_ENGINE_AWAY: f32 = 12.0;
 const W: f32 = 600.0 / SCALE;
@@ -109,6 +117,9 @@ impl Lander {
             ..Default::default()
         };
         world.integration_parameters.dt = 1.0 / FPS;
+        // Box2D's gym world runs 180 velocity iterations; with rapier's default 4 the legs chatter
+        // against their limits and the lander never comes to rest.
+        world.integration_parameters.num_solver_iterations = SOLVER_ITERATIONS;
 
         // Terrain: CHUNKS + 1 random heights, the helipad flattened, then smoothed (gym's
         // indexing, including height[-1] for the first chunk).
@@ -164,34 +175,49 @@ impl Lander {
         );
         let mut legs = [(RigidBodyHandle::invalid(), ColliderHandle::invalid()); 2];
         for (k, i) in [-1.0f32, 1.0].into_iter().enumerate() {
+            // Posed at the limit the motor holds them at (gym starts them at +-0.05 rad and lets
+            // Box2D snap them there in the first step; a multibody would kick the hull instead).
+            let angle = -i * LEG_REST_ANGLE;
+            let anchor = Vector::new(i * LEG_AWAY, LEG_DOWN) / SCALE;
+            let (sin, cos) = angle.sin_cos();
+            let offset = Vector::new(
+                cos * anchor.x - sin * anchor.y,
+                sin * anchor.x + cos * anchor.y,
+            );
             let (leg, leg_collider) = world.insert(
                 RigidBodyBuilder::dynamic()
-                    .translation(Vector::new(W / 2.0 - i * LEG_AWAY / SCALE, initial_y))
-                    .rotation(i * 0.05)
+                    .translation(Vector::new(W / 2.0, initial_y) - offset)
+                    .rotation(angle)
                     .can_sleep(false),
                 ColliderBuilder::cuboid(LEG_W / SCALE, LEG_H / SCALE)
                     .density(1.0)
                     .friction(0.2)
                     .restitution(0.0),
             );
-            let limits = if i < 0.0 { [0.4, 0.9] } else { [-0.9, -0.4] };
+            let limits = if i < 0.0 {
+                [LEG_REST_ANGLE, 0.9]
+            } else {
+                [-0.9, -LEG_REST_ANGLE]
+            };
             let joint = RevoluteJointBuilder::new()
                 .local_anchor1(Vector::new(0.0, 0.0))
                 .local_anchor2(Vector::new(i * LEG_AWAY / SCALE, LEG_DOWN / SCALE))
                 .limits(limits)
                 .motor_model(MotorModel::ForceBased)
-                .motor_velocity(0.3 * i, 1.0)
+                .motor_velocity(0.3 * i, LEG_MOTOR_DAMPING)
                 .motor_max_force(LEG_SPRING_TORQUE)
                 .contacts_enabled(false);
-            world.insert_impulse_joint(hull, leg, joint);
+            world
+                .insert_multibody_joint(hull, leg, joint)
+                .expect("a leg hangs off the hull: no loop");
             legs[k] = (leg, leg_collider);
         }
-        // gym pushes the lander with a random force during its first step: the same impulse.
+        // gym pushes the lander with a random force during its first step (reset's step).
         let push = Vector::new(
             self.rng.random_range(-INITIAL_RANDOM..INITIAL_RANDOM),
             self.rng.random_range(-INITIAL_RANDOM..INITIAL_RANDOM),
-        ) / FPS;
-        world.bodies[hull].apply_impulse(push, true);
+        );
+        world.bodies[hull].add_force(push, true);
 
         self.world = world;
         self.ground = ground;
@@ -211,7 +237,9 @@ impl Lander {
             .is_some_and(|pair| pair.has_any_active_contact())
     }
 
-    /// Applies the engines of one (clipped) action; returns their powers.
+    /// Applies the engines of one (clipped) action for the coming step; returns their powers.
+    /// gym's impulses become forces over the step: rapier recomputes a multibody's velocities
+    /// from its own state, so an impulse on the hull would be lost.
     fn fire(&mut self, action: [f32; 2]) -> (f32, f32) {
         let hull = &self.world.bodies[self.hull];
         let angle = hull.rotation().angle();
@@ -229,7 +257,7 @@ impl Lander {
             let oy = -tip.y * (4.0 / SCALE + 2.0 * dispersion[0]) - side.y * dispersion[1];
             let at = Vector::new(pos.x + ox, pos.y + oy);
             let impulse = Vector::new(-ox, -oy) * MAIN_ENGINE_POWER * main_power;
-            self.world.bodies[self.hull].apply_impulse_at_point(impulse, at, true);
+            self.world.bodies[self.hull].add_force_at_point(impulse * FPS, at, true);
         }
         let mut side_power = 0.0;
         if action[1].abs() > 0.5 {
@@ -244,7 +272,7 @@ impl Lander {
                 pos.y + oy + tip.y * SIDE_ENGINE_HEIGHT / SCALE,
             );
             let impulse = Vector::new(-ox, -oy) * SIDE_ENGINE_POWER * side_power;
-            self.world.bodies[self.hull].apply_impulse_at_point(impulse, at, true);
+            self.world.bodies[self.hull].add_force_at_point(impulse * FPS, at, true);
         }
         (main_power, side_power)
     }
@@ -254,6 +282,9 @@ impl Lander {
     fn advance(&mut self, action: [f32; 2], obs: &mut [f32]) -> (f64, bool) {
         let (main_power, side_power) = self.fire(action);
         self.world.step();
+        let hull = &mut self.world.bodies[self.hull];
+        hull.reset_forces(false);
+        hull.reset_torques(false);
         if self.touching(self.hull_collider) {
             self.game_over = true;
         }
