@@ -41,6 +41,7 @@ async fn sessions_belong_to_the_token_that_opened_them() {
     let open = proto::OpenSessionRequest {
         policy: "toy".into(),
         options: None,
+        resume: None,
     };
     assert_eq!(
         client

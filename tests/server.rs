@@ -34,6 +34,7 @@ async fn open(
         .open_session(proto::OpenSessionRequest {
             policy: "toy".into(),
             options: Some(options),
+            resume: None,
         })
         .await
         .unwrap()
@@ -144,6 +145,7 @@ async fn list_open_stream_unary_plan_and_watch_with(args: &[&str]) {
         .open_session(proto::OpenSessionRequest {
             policy: "toy".into(),
             options: Some(options(Some(Tolerance::EpsilonCoef(0.0002)), None, 12)),
+            resume: None,
         })
         .await
         .unwrap()
@@ -409,6 +411,7 @@ async fn every_error_status_with_a_clear_message() {
     let open_status = |policy: &str, o: proto::SessionOptions| proto::OpenSessionRequest {
         policy: policy.to_string(),
         options: Some(o),
+        resume: None,
     };
     let cases: Vec<(proto::OpenSessionRequest, Code, &[&str])> = vec![
         (
@@ -572,6 +575,7 @@ async fn the_session_cap_answers_resource_exhausted() {
         .open_session(proto::OpenSessionRequest {
             policy: "toy".into(),
             options: None,
+            resume: None,
         })
         .await
         .expect_err("over the cap");

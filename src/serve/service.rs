@@ -204,12 +204,22 @@ impl Prac for PracService {
         let id = new_session_id();
         let mut session = Session::new(id.clone(), policy.clone(), settings);
         session.owner = owner;
+        let resumed_actions = match &request.resume {
+            Some(plan) => {
+                session
+                    .resume(plan)
+                    .map_err(|e| Status::invalid_argument(format!("cannot resume: {e}")))?;
+                plan.actions.len() as u32
+            }
+            None => 0,
+        };
         self.state.sessions.insert(session)?;
         tracing::debug!(session = %id, policy = %request.policy, "session opened");
         Ok(Response::new(proto::OpenSessionResponse {
             session_id: id,
             policy: Some(policy_info(&request.policy, policy)),
             options: Some(settings.to_proto()),
+            resumed_actions,
         }))
     }
 

@@ -287,6 +287,63 @@ impl Session {
         }
     }
 
+    /// Takes over a plan committed elsewhere (`OpenSession` with `resume`): `plan.actions[0]` was
+    /// executed at step `plan.start_step` and the rest is the commitment. Checked here for shape
+    /// and sanity only; whether each action is still worth keeping is Replan's test at the next
+    /// step. Predicted observations are not trusted: Replan rolls the model again.
+    pub fn resume(&mut self, plan: &proto::Plan) -> Result<(), String> {
+        let (od, ad) = (self.policy.obs_dim(), self.policy.act_dim());
+        let limit = self.settings.replan.max_horizon;
+        if plan.actions.is_empty() {
+            return Err("the resumed plan has no actions; omit resume to start afresh".into());
+        }
+        if plan.actions.len() > limit {
+            return Err(format!(
+                "the resumed plan has {} actions; the session's max_horizon is {limit}",
+                plan.actions.len()
+            ));
+        }
+        let (lo, hi) = (
+            &self.policy.manifest.action_low,
+            &self.policy.manifest.action_high,
+        );
+        let mut squashed = vec![0.0; ad];
+        let mut resumed = Plan::with_capacity(od, ad, limit + 1);
+        for (j, entry) in plan.actions.iter().enumerate() {
+            if entry.action.len() != ad {
+                return Err(format!(
+                    "resume.actions[{j}] has {} values; policy '{}' expects act_dim = {ad}",
+                    entry.action.len(),
+                    self.policy.manifest.name
+                ));
+            }
+            for (i, &a) in entry.action.iter().enumerate() {
+                if !(a.is_finite() && a >= lo[i] && a <= hi[i]) {
+                    return Err(format!(
+                        "resume.actions[{j}].action[{i}] is {a}; expected a finite value in [{}, {}]",
+                        lo[i], hi[i]
+                    ));
+                }
+            }
+            if entry.decided_at > plan.start_step {
+                return Err(format!(
+                    "resume.actions[{j}] was decided at step {}, after the plan's start_step {}",
+                    entry.decided_at, plan.start_step
+                ));
+            }
+            self.policy.scale_action(&entry.action, &mut squashed);
+            for v in &mut squashed {
+                *v = v.clamp(-1.0, 1.0);
+            }
+            resumed.push(&squashed, &vec![f32::NAN; od], entry.decided_at);
+        }
+        // Keep the spare's capacity for the allocation-free steps that follow.
+        self.plan = resumed;
+        self.step = Some(plan.start_step);
+        self.episode = plan.episode;
+        Ok(())
+    }
+
     /// A copy of the session's rng, for a job (kept only if the step commits).
     pub fn rng(&self) -> ChaCha8Rng {
         self.rng.clone()
@@ -299,7 +356,12 @@ impl Session {
                 self.policy.unscale_action(self.plan.action(j), &mut action);
                 proto::PlannedAction {
                     action,
-                    predicted_observation: self.plan.next_obs(j).to_vec(),
+                    // Unknown (empty) for a resumed plan until its first replan.
+                    predicted_observation: if self.plan.next_obs(j).iter().all(|v| v.is_finite()) {
+                        self.plan.next_obs(j).to_vec()
+                    } else {
+                        Vec::new()
+                    },
                     decided_at: self.plan.decided_at(j),
                 }
             })

@@ -237,6 +237,7 @@ async fn open(
         .open_session(proto::OpenSessionRequest {
             policy: policy.to_string(),
             options: Some(session_options(args)),
+            resume: None,
         })
         .await
         .context("OpenSession")?;
@@ -514,6 +515,7 @@ async fn run(args: Args) -> anyhow::Result<Report> {
             .open_session(proto::OpenSessionRequest {
                 policy: policy.clone(),
                 options: Some(session_options(&args)),
+                resume: None,
             })
             .await;
         match opened {

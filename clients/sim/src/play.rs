@@ -123,6 +123,7 @@ pub async fn play_episode(
         .open_session(proto::OpenSessionRequest {
             policy: info.name.clone(),
             options: Some(options),
+            resume: None,
         })
         .await
         .map_err(|s| anyhow::anyhow!("OpenSession: {}", s.message()))?
