@@ -17,7 +17,7 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     /// Serve the bundles of a directory over gRPC (prac.v1.Prac, health, reflection).
-    Serve(ServeArgs),
+    Serve(Box<ServeArgs>),
     /// Validate a bundle, print its manifest and run one forward pass.
     Inspect {
         file: PathBuf,
@@ -96,7 +96,7 @@ enum Command {
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
-        Command::Serve(args) => serve(args),
+        Command::Serve(args) => serve(*args),
         Command::Inspect { file, json } => {
             prac::cli::inspect::run(&file, json).map(|text| print!("{text}"))
         }

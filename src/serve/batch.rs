@@ -201,6 +201,11 @@ impl Worker {
             let mut rngs: Vec<_> = sessions.iter().map(|s| s.rng()).collect();
             let policy = sessions[0].policy.clone();
             let max_batch = self.config.max_batch;
+            if !self.evaluators.contains_key(&key) {
+                // Policies replaced by a reload, whose sessions are all gone: only we hold them.
+                self.evaluators
+                    .retain(|_, e| Arc::strong_count(e.policy()) > 1);
+            }
             let evaluator = self
                 .evaluators
                 .entry(key)

@@ -75,6 +75,10 @@ pub struct ServeArgs {
     /// PEM private key of --tls-cert.
     #[arg(long, requires = "tls_cert")]
     pub tls_key: Option<PathBuf>,
+    /// Serve Prometheus metrics over HTTP at ADDR/metrics, e.g. 127.0.0.1:9090; port 0 picks a
+    /// free port (printed as `metrics on ADDR`) [default: off].
+    #[arg(long)]
+    pub metrics_listen: Option<SocketAddr>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -96,6 +100,7 @@ struct FileConfig {
     auth_tokens: Option<PathBuf>,
     tls_cert: Option<PathBuf>,
     tls_key: Option<PathBuf>,
+    metrics_listen: Option<SocketAddr>,
 }
 
 /// The settings in force.
@@ -115,6 +120,8 @@ pub struct ServeConfig {
     pub auth_tokens: Option<PathBuf>,
     /// Certificate chain and key (PEM) when serving TLS.
     pub tls: Option<(PathBuf, PathBuf)>,
+    /// Where to serve Prometheus metrics; None when off.
+    pub metrics_listen: Option<SocketAddr>,
 }
 
 /// The repository's bundle directory, which the training issues fill.
@@ -142,6 +149,7 @@ impl Default for ServeConfig {
             }),
             auth_tokens: None,
             tls: None,
+            metrics_listen: None,
         }
     }
 }
@@ -201,6 +209,7 @@ impl ServeConfig {
                 (None, None) => None,
                 _ => anyhow::bail!("tls_cert and tls_key go together"),
             },
+            metrics_listen: args.metrics_listen.or(file.metrics_listen),
         };
         let db = d.batch.expect("batching is on by default");
         let max_batch = args.batch_max.or(file.batch_max).unwrap_or(db.max_batch);

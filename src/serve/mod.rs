@@ -5,6 +5,7 @@ pub mod batch;
 pub mod config;
 pub mod health;
 pub mod local;
+pub mod metrics;
 pub mod registry;
 pub mod service;
 pub mod session;
@@ -65,6 +66,69 @@ async fn termination_signal() {
     let _ = ctrl_c.await;
 }
 
+/// Hot reload: on each SIGHUP, re-reads the bundle directory ([`Registry::reload`]). New sessions
+/// get the new versions; open sessions keep the policy they opened with until they close; a
+/// broken new file keeps the old version.
+#[cfg(unix)]
+async fn reload_on_hangup<F, Fut>(state: Arc<ServerState>, dir: std::path::PathBuf, set_health: F)
+where
+    F: Fn(ServingStatus) -> Fut,
+    Fut: std::future::Future<Output = ()>,
+{
+    let mut hangup = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()) {
+        Ok(hangup) => hangup,
+        Err(e) => {
+            tracing::error!(error = %e, "cannot listen for SIGHUP; hot reload is off");
+            return;
+        }
+    };
+    while hangup.recv().await.is_some() {
+        let current = state
+            .registry
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
+            .unwrap_or_default();
+        let reload_dir = dir.clone();
+        let reloaded = tokio::task::spawn_blocking(move || current.reload(&reload_dir)).await;
+        let (registry, report) = match reloaded {
+            Ok(Ok(done)) => done,
+            Ok(Err(e)) => {
+                tracing::error!(dir = %dir.display(), error = %e, "reload failed: cannot read the bundle directory; serving as before");
+                state.metrics.reload(false);
+                continue;
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "reload failed; serving as before");
+                state.metrics.reload(false);
+                continue;
+            }
+        };
+        for error in &report.errors {
+            tracing::error!(%error, "reload: bad bundle (a loaded version of it, if any, stays)");
+        }
+        tracing::info!(
+            added = ?report.added,
+            replaced = ?report.replaced,
+            removed = ?report.removed,
+            kept_old = ?report.kept_old,
+            unchanged = report.unchanged.len(),
+            "reloaded bundles"
+        );
+        state.metrics.reload(report.errors.is_empty());
+        let serving = !registry.is_empty();
+        *state.registry.write().unwrap_or_else(|p| p.into_inner()) = Some(Arc::new(registry));
+        if !state.shutdown.is_cancelled() {
+            set_health(if serving {
+                ServingStatus::Serving
+            } else {
+                ServingStatus::NotServing
+            })
+            .await;
+        }
+    }
+}
+
 /// Runs the server until SIGINT/SIGTERM. Prints `listening on ADDR` on stdout once bound (port 0
 /// picks a free port; scripts and tests read that line).
 pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
@@ -88,6 +152,14 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
         .await
         .with_context(|| format!("cannot listen on {}", config.listen))?;
     let addr = listener.local_addr()?;
+    let metrics_listener = match config.metrics_listen {
+        Some(at) => Some(
+            TcpListener::bind(at)
+                .await
+                .with_context(|| format!("cannot listen for metrics on {at}"))?,
+        ),
+        None => None,
+    };
 
     let shutdown = CancellationToken::new();
     let health = tonic_health::server::HealthReporter::new();
@@ -121,6 +193,7 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
         shutdown: shutdown.clone(),
         batcher: config.batch.map(batch::Batcher::start),
         auth,
+        metrics: metrics::Metrics::default(),
     });
     let prac = PracServer::new(PracService {
         state: state.clone(),
@@ -146,6 +219,11 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
         .add_service(prac)
         .serve_with_incoming_shutdown(incoming, shutdown.clone().cancelled_owned());
     let mut server = tokio::spawn(server);
+    if let Some(listener) = metrics_listener {
+        // Printed before the gRPC address, which scripts wait for as the ready line.
+        println!("metrics on {}", listener.local_addr()?);
+        tokio::spawn(metrics::serve(listener, state.clone(), shutdown.clone()));
+    }
     println!("listening on {addr}");
     tracing::info!(%addr, bundles = %config.bundles.display(), "listening");
 
@@ -209,6 +287,15 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
         tracing::info!(policies = count, "serving");
     }
 
+    #[cfg(unix)]
+    let reloader = tokio::spawn(reload_on_hangup(
+        state.clone(),
+        config.bundles.clone(),
+        set_health.clone(),
+    ));
+    #[cfg(not(unix))]
+    let reloader = tokio::spawn(async {});
+
     let evictor = tokio::spawn({
         let state = state.clone();
         let period =
@@ -217,7 +304,8 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
             let mut tick = tokio::time::interval(period);
             loop {
                 tick.tick().await;
-                state.sessions.evict_idle();
+                let evicted = state.sessions.evict_idle();
+                state.metrics.evicted(evicted);
             }
         }
     });
@@ -225,11 +313,13 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
     tokio::select! {
         result = &mut server => {
             evictor.abort();
+            reloader.abort();
             return result?.context("server failed");
         }
         _ = shutdown.cancelled() => {}
     }
     evictor.abort();
+    reloader.abort();
     match tokio::time::timeout(config.drain_timeout, &mut server).await {
         Ok(result) => {
             result?.context("server failed")?;

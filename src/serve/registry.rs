@@ -7,7 +7,7 @@ use std::sync::Arc;
 use crate::bundle::{self, BundleError};
 use crate::policy::Policy;
 
-#[derive(Default)]
+#[derive(Default, Clone)]
 pub struct Registry {
     policies: BTreeMap<String, Arc<Policy>>,
 }
@@ -81,4 +81,64 @@ impl Registry {
         }
         Ok(Loaded { registry, errors })
     }
+
+    /// The registry after re-reading `dir` (hot reload): a file whose bytes are unchanged keeps
+    /// its loaded policy (same `Arc`), a changed or new file that loads replaces or adds its
+    /// policy, a file that no longer loads keeps the old version, and a removed file leaves the
+    /// registry. Open sessions hold their own `Arc` and are not affected.
+    pub fn reload(&self, dir: &Path) -> std::io::Result<(Registry, ReloadReport)> {
+        let Loaded {
+            registry: fresh,
+            errors,
+        } = Registry::load_dir(dir)?;
+        let mut next = Registry::default();
+        let mut report = ReloadReport::default();
+        for (name, policy) in fresh.policies {
+            match self.policies.get(&name) {
+                Some(old) if old.content_hash == policy.content_hash => {
+                    report.unchanged.push(name.clone());
+                    next.policies.insert(name, old.clone());
+                }
+                Some(_) => {
+                    report.replaced.push(name.clone());
+                    next.policies.insert(name, policy);
+                }
+                None => {
+                    report.added.push(name.clone());
+                    next.policies.insert(name, policy);
+                }
+            }
+        }
+        for error in errors {
+            let name = error
+                .file
+                .file_stem()
+                .and_then(|s| s.to_str())
+                .unwrap_or_default()
+                .to_string();
+            if let Some(old) = self.policies.get(&name) {
+                report.kept_old.push(name.clone());
+                next.policies.insert(name, old.clone());
+            }
+            report.errors.push(error);
+        }
+        for name in self.policies.keys() {
+            if !next.policies.contains_key(name) {
+                report.removed.push(name.clone());
+            }
+        }
+        Ok((next, report))
+    }
+}
+
+/// What a reload changed, by policy name.
+#[derive(Debug, Default)]
+pub struct ReloadReport {
+    pub added: Vec<String>,
+    pub replaced: Vec<String>,
+    pub unchanged: Vec<String>,
+    pub removed: Vec<String>,
+    /// Policies whose new file is broken: the old version stays.
+    pub kept_old: Vec<String>,
+    pub errors: Vec<BundleError>,
 }

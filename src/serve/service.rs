@@ -32,6 +32,7 @@ pub struct ServerState {
     pub batcher: Option<Batcher>,
     /// Bearer tokens; None when auth is off.
     pub auth: Option<super::auth::Tokens>,
+    pub metrics: super::metrics::Metrics,
 }
 
 impl From<SessionError> for Status {
@@ -107,15 +108,48 @@ impl ServerState {
     }
 
     fn caller(&self, metadata: &tonic::metadata::MetadataMap) -> Result<Option<String>, Status> {
-        super::auth::caller(self.auth.as_ref(), metadata)
+        super::auth::caller(self.auth.as_ref(), metadata).inspect_err(|s| self.metrics.error(s))
     }
 
+    /// Counts a handler's error in the metrics.
+    fn counted<T>(&self, result: Result<T, Status>) -> Result<T, Status> {
+        result.inspect_err(|s| self.metrics.error(s))
+    }
+
+    /// One step, counted in the metrics (latency, forecast length, plan breaks, errors).
     async fn step(
         &self,
         request: proto::StepRequest,
         caller: Option<&str>,
     ) -> Result<proto::StepResponse, Status> {
-        let slot = self.sessions.get(&request.session_id, caller)?;
+        let start = std::time::Instant::now();
+        let slot = match self.sessions.get(&request.session_id, caller) {
+            Ok(slot) => slot,
+            Err(e) => {
+                let status = Status::from(e);
+                self.metrics.error(&status);
+                return Err(status);
+            }
+        };
+        let policy = slot.policy.clone();
+        let result = self.step_in(slot, request).await;
+        match &result {
+            Ok(response) => self.metrics.step(
+                &policy.manifest.name,
+                start.elapsed(),
+                response.forecast.len(),
+                response.broke_at.is_some(),
+            ),
+            Err(status) => self.metrics.error(status),
+        }
+        result
+    }
+
+    async fn step_in(
+        &self,
+        slot: Arc<super::session::SessionSlot>,
+        request: proto::StepRequest,
+    ) -> Result<proto::StepResponse, Status> {
         if let Some(batcher) = &self.batcher {
             return batcher.step(slot, request).await;
         }
@@ -126,6 +160,10 @@ impl ServerState {
                 RefCell::new(HashMap::new());
         }
         INLINE.with_borrow_mut(|inline| {
+            if !inline.contains_key(&Arc::as_ptr(&slot.policy)) {
+                // Policies replaced by a reload, whose sessions are all gone: only we hold them.
+                inline.retain(|_, (e, _)| Arc::strong_count(e.policy()) > 1);
+            }
             let (evaluator, scratch) =
                 inline.entry(Arc::as_ptr(&slot.policy)).or_insert_with(|| {
                     let policy = slot.policy.clone();
@@ -164,7 +202,7 @@ impl Prac for PracService {
         request: Request<proto::ListPoliciesRequest>,
     ) -> Result<Response<proto::ListPoliciesResponse>, Status> {
         self.state.caller(request.metadata())?;
-        let registry = self.state.registry()?;
+        let registry = self.state.counted(self.state.registry())?;
         let policies = registry.iter().map(|(n, p)| policy_info(n, p)).collect();
         Ok(Response::new(proto::ListPoliciesResponse { policies }))
     }
@@ -175,45 +213,51 @@ impl Prac for PracService {
     ) -> Result<Response<proto::OpenSessionResponse>, Status> {
         let owner = self.state.caller(request.metadata())?;
         let request = request.into_inner();
-        let registry = self.state.registry()?;
+        let registry = self.state.counted(self.state.registry())?;
         let Some(policy) = registry.get(&request.policy) else {
-            return Err(Status::not_found(format!(
+            return self.state.counted(Err(Status::not_found(format!(
                 "unknown policy '{}'; this server has: {}",
                 request.policy.chars().take(64).collect::<String>(),
                 registry.names().join(", ")
-            )));
+            ))));
         };
-        let settings = SessionSettings::resolve(
-            request.options.as_ref(),
-            policy,
-            self.state.max_horizon_limit,
-        )
-        .map_err(|e| Status::invalid_argument(format!("bad session options: {e}")))?;
+        let settings = self.state.counted(
+            SessionSettings::resolve(
+                request.options.as_ref(),
+                policy,
+                self.state.max_horizon_limit,
+            )
+            .map_err(|e| Status::invalid_argument(format!("bad session options: {e}"))),
+        )?;
         let largest = largest_response_bytes(
             settings.replan.max_horizon,
             policy.obs_dim(),
             policy.act_dim(),
         );
         if largest > self.state.max_message_bytes {
-            return Err(Status::invalid_argument(format!(
+            return self.state.counted(Err(Status::invalid_argument(format!(
                 "bad session options: a plan of max_horizon {} may need {largest} bytes per \
                  response, over the server's max message size of {} bytes; lower max_horizon",
                 settings.replan.max_horizon, self.state.max_message_bytes
-            )));
+            ))));
         }
         let id = new_session_id();
         let mut session = Session::new(id.clone(), policy.clone(), settings);
         session.owner = owner;
         let resumed_actions = match &request.resume {
             Some(plan) => {
-                session
-                    .resume(plan)
-                    .map_err(|e| Status::invalid_argument(format!("cannot resume: {e}")))?;
+                self.state.counted(
+                    session
+                        .resume(plan)
+                        .map_err(|e| Status::invalid_argument(format!("cannot resume: {e}"))),
+                )?;
                 plan.actions.len() as u32
             }
             None => 0,
         };
-        self.state.sessions.insert(session)?;
+        self.state
+            .counted(self.state.sessions.insert(session).map_err(Status::from))?;
+        self.state.metrics.session_opened();
         tracing::debug!(session = %id, policy = %request.policy, "session opened");
         Ok(Response::new(proto::OpenSessionResponse {
             session_id: id,
@@ -228,10 +272,12 @@ impl Prac for PracService {
         request: Request<proto::CloseSessionRequest>,
     ) -> Result<Response<proto::CloseSessionResponse>, Status> {
         let caller = self.state.caller(request.metadata())?;
-        let slot = self
-            .state
-            .sessions
-            .close(&request.get_ref().session_id, caller.as_deref())?;
+        let slot = self.state.counted(
+            self.state
+                .sessions
+                .close(&request.get_ref().session_id, caller.as_deref())
+                .map_err(Status::from),
+        )?;
         let steps = slot.lock().steps_served();
         Ok(Response::new(proto::CloseSessionResponse { steps }))
     }
@@ -270,6 +316,7 @@ impl Prac for PracService {
                             Ok(Some(request)) => request,
                             Ok(None) => break,
                             Err(status) => {
+                                state.metrics.error(&status);
                                 send(&tx, Err(status), &state.shutdown).await;
                                 break;
                             }
@@ -296,10 +343,12 @@ impl Prac for PracService {
         request: Request<proto::GetPlanRequest>,
     ) -> Result<Response<proto::Plan>, Status> {
         let caller = self.state.caller(request.metadata())?;
-        let slot = self
-            .state
-            .sessions
-            .get(&request.get_ref().session_id, caller.as_deref())?;
+        let slot = self.state.counted(
+            self.state
+                .sessions
+                .get(&request.get_ref().session_id, caller.as_deref())
+                .map_err(Status::from),
+        )?;
         let plan = slot.lock().plan_proto();
         Ok(Response::new(plan))
     }
@@ -312,7 +361,12 @@ impl Prac for PracService {
     ) -> Result<Response<Self::WatchPlanStream>, Status> {
         let caller = self.state.caller(request.metadata())?;
         let id = request.into_inner().session_id;
-        let slot = self.state.sessions.get(&id, caller.as_deref())?;
+        let slot = self.state.counted(
+            self.state
+                .sessions
+                .get(&id, caller.as_deref())
+                .map_err(Status::from),
+        )?;
         let (current, mut updates) = {
             let session = slot.lock();
             (session.plan_proto(), session.watch())
@@ -339,6 +393,7 @@ impl Prac for PracService {
                             // The session ended: say how (closed, expired).
                             let why = state.sessions.get(&id, caller.as_deref()).err().map(Status::from);
                             if let Some(status) = why {
+                                state.metrics.error(&status);
                                 send(&tx, Err(status), shutdown).await;
                             }
                             break;

@@ -35,6 +35,8 @@ pub fn bundle_dir() -> tempfile::TempDir {
 pub struct Server {
     pub child: Child,
     pub addr: String,
+    /// stdout lines before `listening on ADDR`.
+    pub preamble: Vec<String>,
     pub stderr_path: PathBuf,
     _stderr_dir: tempfile::TempDir,
 }
@@ -53,21 +55,27 @@ impl Server {
             .spawn()
             .unwrap();
         let stdout = child.stdout.take().unwrap();
-        let mut line = String::new();
-        BufReader::new(stdout).read_line(&mut line).unwrap();
-        let addr = line
-            .trim()
-            .strip_prefix("listening on ")
-            .unwrap_or_else(|| {
+        let mut stdout = BufReader::new(stdout);
+        // Lines before the ready line (e.g. `metrics on ADDR`).
+        let mut preamble = Vec::new();
+        let addr = loop {
+            let mut line = String::new();
+            stdout.read_line(&mut line).unwrap();
+            if let Some(addr) = line.trim().strip_prefix("listening on ") {
+                break addr.to_string();
+            }
+            if line.is_empty() {
                 panic!(
-                    "no address from the server: {line:?}; stderr: {}",
+                    "no address from the server; stderr: {}",
                     std::fs::read_to_string(&stderr_path).unwrap_or_default()
-                )
-            })
-            .to_string();
+                );
+            }
+            preamble.push(line.trim().to_string());
+        };
         Server {
             child,
             addr,
+            preamble,
             stderr_path,
             _stderr_dir: stderr_dir,
         }

@@ -1,0 +1,169 @@
+//! Prometheus metrics of `prac serve`, served over HTTP at `--metrics-listen ADDR` `/metrics`.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use axum::Router;
+use axum::extract::State;
+use axum::http::StatusCode;
+use axum::http::header::CONTENT_TYPE;
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use prometheus_client::encoding::text::encode;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
+use prometheus_client::registry::Registry;
+use tokio_util::sync::CancellationToken;
+
+use super::service::ServerState;
+
+type Labels = Vec<(&'static str, String)>;
+
+pub struct Metrics {
+    registry: Registry,
+    steps: Family<Labels, Counter>,
+    step_latency: Histogram,
+    open_sessions: Gauge,
+    sessions_opened: Counter,
+    evictions: Counter,
+    plan_breaks: Counter,
+    forecast_length: Histogram,
+    errors: Family<Labels, Counter>,
+    reloads: Family<Labels, Counter>,
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        let m = Metrics {
+            registry: Registry::with_prefix("prac"),
+            steps: Family::default(),
+            // 10 us .. ~80 ms.
+            step_latency: Histogram::new(exponential_buckets(1e-5, 2.0, 14)),
+            open_sessions: Gauge::default(),
+            sessions_opened: Counter::default(),
+            evictions: Counter::default(),
+            plan_breaks: Counter::default(),
+            // 1 .. 256 actions.
+            forecast_length: Histogram::new(exponential_buckets(1.0, 2.0, 9)),
+            errors: Family::default(),
+            reloads: Family::default(),
+        };
+        let mut m = m;
+        let r = &mut m.registry;
+        r.register("steps", "Steps served, by policy", m.steps.clone());
+        r.register(
+            "step_latency_seconds",
+            "Time from a step's arrival to its answer (batching included)",
+            m.step_latency.clone(),
+        );
+        r.register(
+            "open_sessions",
+            "Sessions open now",
+            m.open_sessions.clone(),
+        );
+        r.register(
+            "sessions_opened",
+            "Sessions opened",
+            m.sessions_opened.clone(),
+        );
+        r.register(
+            "session_evictions",
+            "Sessions evicted after the session TTL idle",
+            m.evictions.clone(),
+        );
+        r.register(
+            "plan_breaks",
+            "Steps whose plan failed the critic's test and was replanned from the break",
+            m.plan_breaks.clone(),
+        );
+        r.register(
+            "forecast_length",
+            "Committed actions in each step's forecast",
+            m.forecast_length.clone(),
+        );
+        r.register(
+            "errors",
+            "Calls and streams that ended with an error, by gRPC status code",
+            m.errors.clone(),
+        );
+        r.register(
+            "reloads",
+            "Bundle reloads (SIGHUP), by result",
+            m.reloads.clone(),
+        );
+        m
+    }
+}
+
+impl Metrics {
+    pub fn step(&self, policy: &str, latency: Duration, forecast: usize, broke: bool) {
+        self.steps
+            .get_or_create(&vec![("policy", policy.to_string())])
+            .inc();
+        self.step_latency.observe(latency.as_secs_f64());
+        self.forecast_length.observe(forecast as f64);
+        if broke {
+            self.plan_breaks.inc();
+        }
+    }
+
+    pub fn error(&self, status: &tonic::Status) {
+        self.errors
+            .get_or_create(&vec![("code", format!("{:?}", status.code()))])
+            .inc();
+    }
+
+    pub fn session_opened(&self) {
+        self.sessions_opened.inc();
+    }
+
+    pub fn evicted(&self, count: usize) {
+        self.evictions.inc_by(count as u64);
+    }
+
+    pub fn reload(&self, clean: bool) {
+        let result = if clean { "ok" } else { "errors" };
+        self.reloads
+            .get_or_create(&vec![("result", result.to_string())])
+            .inc();
+    }
+
+    /// The OpenMetrics text of every metric, with the open-session gauge read now.
+    pub fn encode(&self, open_sessions: usize) -> String {
+        self.open_sessions.set(open_sessions as i64);
+        let mut text = String::new();
+        encode(&mut text, &self.registry).expect("writing to a String cannot fail");
+        text
+    }
+}
+
+async fn scrape(State(state): State<Arc<ServerState>>) -> impl IntoResponse {
+    let text = state.metrics.encode(state.sessions.len());
+    Response::builder()
+        .status(StatusCode::OK)
+        .header(
+            CONTENT_TYPE,
+            "application/openmetrics-text; version=1.0.0; charset=utf-8",
+        )
+        .body(axum::body::Body::from(text))
+        .unwrap_or_else(|_| StatusCode::INTERNAL_SERVER_ERROR.into_response())
+}
+
+/// Serves `/metrics` on `listener` until shutdown.
+pub async fn serve(
+    listener: tokio::net::TcpListener,
+    state: Arc<ServerState>,
+    shutdown: CancellationToken,
+) {
+    let router = Router::new()
+        .route("/metrics", get(scrape))
+        .with_state(state);
+    if let Err(e) = axum::serve(listener, router)
+        .with_graceful_shutdown(shutdown.cancelled_owned())
+        .await
+    {
+        tracing::error!(error = %e, "the metrics endpoint failed");
+    }
+}

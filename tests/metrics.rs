@@ -1,0 +1,110 @@
+//! Prometheus metrics over HTTP: steps, latency histogram, open sessions, plan breaks, forecast
+//! length and errors by status code, read from a real server's /metrics.
+
+mod common;
+
+use std::io::{Read, Write};
+
+use common::{OBS, Server, bundle_dir};
+use prac::proto;
+
+fn scrape(addr: &str) -> String {
+    let mut stream = std::net::TcpStream::connect(addr).unwrap();
+    write!(
+        stream,
+        "GET /metrics HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
+    )
+    .unwrap();
+    let mut text = String::new();
+    stream.read_to_string(&mut text).unwrap();
+    assert!(text.starts_with("HTTP/1.1 200"), "{text}");
+    text
+}
+
+/// The value of the sample line that starts with `name` (labels included).
+fn sample(text: &str, name: &str) -> f64 {
+    text.lines()
+        .find_map(|l| l.strip_prefix(name).and_then(|v| v.trim().parse().ok()))
+        .unwrap_or_else(|| panic!("no {name} in:\n{text}"))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn metrics_count_steps_sessions_and_errors() {
+    let bundles = bundle_dir();
+    let server = Server::start(bundles.path(), &["--metrics-listen", "127.0.0.1:0"]);
+    let addr = server
+        .preamble
+        .iter()
+        .find_map(|l| l.strip_prefix("metrics on "))
+        .expect("the metrics address")
+        .to_string();
+    server.wait_serving().await;
+    let mut client = server.client().await;
+    let mut ids = Vec::new();
+    for _ in 0..2 {
+        ids.push(
+            client
+                .open_session(proto::OpenSessionRequest {
+                    policy: "toy".into(),
+                    options: None,
+                    resume: None,
+                })
+                .await
+                .unwrap()
+                .into_inner()
+                .session_id,
+        );
+    }
+    for k in 0..5 {
+        client
+            .step(proto::StepRequest {
+                session_id: ids[0].clone(),
+                observation: vec![0.1 * k as f32; OBS],
+                new_episode: k == 0,
+            })
+            .await
+            .unwrap();
+    }
+    client
+        .close_session(proto::CloseSessionRequest {
+            session_id: ids[1].clone(),
+        })
+        .await
+        .unwrap();
+    for bad in [vec![0.0; OBS + 1], vec![f32::NAN; OBS]] {
+        client
+            .step(proto::StepRequest {
+                session_id: ids[0].clone(),
+                observation: bad,
+                new_episode: false,
+            })
+            .await
+            .unwrap_err();
+    }
+    client
+        .step(proto::StepRequest {
+            session_id: "nope".into(),
+            observation: vec![0.0; OBS],
+            new_episode: false,
+        })
+        .await
+        .unwrap_err();
+
+    let text = scrape(&addr);
+    assert_eq!(sample(&text, "prac_steps_total{policy=\"toy\"}"), 5.0);
+    assert_eq!(sample(&text, "prac_step_latency_seconds_count"), 5.0);
+    assert!(sample(&text, "prac_step_latency_seconds_sum") > 0.0);
+    assert_eq!(sample(&text, "prac_forecast_length_count"), 5.0);
+    // The plan grows by one per step while it holds, and a break starts it again.
+    let forecast_sum = sample(&text, "prac_forecast_length_sum");
+    assert!((5.0..=5.0 * 6.0).contains(&forecast_sum), "{forecast_sum}");
+    assert!(sample(&text, "prac_plan_breaks_total") <= 4.0);
+    assert_eq!(sample(&text, "prac_open_sessions"), 1.0);
+    assert_eq!(sample(&text, "prac_sessions_opened_total"), 2.0);
+    assert_eq!(
+        sample(&text, "prac_errors_total{code=\"InvalidArgument\"}"),
+        2.0
+    );
+    assert_eq!(sample(&text, "prac_errors_total{code=\"NotFound\"}"), 1.0);
+    assert_eq!(sample(&text, "prac_session_evictions_total"), 0.0);
+}
