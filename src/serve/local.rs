@@ -54,6 +54,11 @@ impl LocalServer {
         })
     }
 
+    /// The server's process id (None once it has exited).
+    pub fn pid(&self) -> Option<u32> {
+        self.child.id()
+    }
+
     /// Stops the server (SIGKILL; it holds nothing to save).
     pub async fn stop(mut self) {
         let _ = self.child.kill().await;
