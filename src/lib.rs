@@ -12,6 +12,7 @@
 
 pub mod bundle;
 pub mod cli;
+pub mod client;
 pub mod domains;
 pub mod nn;
 pub mod plan;
