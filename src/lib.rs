@@ -14,6 +14,7 @@ pub mod bundle;
 pub mod cli;
 pub mod client;
 pub mod domains;
+pub mod fuzz;
 pub mod nn;
 pub mod plan;
 pub mod policy;

@@ -271,6 +271,15 @@ pub fn tensors(policy: &Policy) -> Vec<NamedTensor> {
 
 /// Serialises a policy (its manifest and networks) as bundle bytes.
 pub fn to_bytes(policy: &Policy) -> Result<Vec<u8>, safetensors::SafeTensorError> {
+    let manifest = serde_json::to_string(&policy.manifest).expect("manifest serialises");
+    to_bytes_with_manifest(policy, &manifest)
+}
+
+/// A policy's networks with any manifest text (for fuzzing the loader's manifest checks).
+pub fn to_bytes_with_manifest(
+    policy: &Policy,
+    manifest: &str,
+) -> Result<Vec<u8>, safetensors::SafeTensorError> {
     let tensors = tensors(policy);
     let bytes: Vec<(String, Vec<usize>, Vec<u8>)> = tensors
         .into_iter()
@@ -288,10 +297,9 @@ pub fn to_bytes(policy: &Policy) -> Result<Vec<u8>, safetensors::SafeTensorError
             )
         })
         .collect();
-    let manifest = serde_json::to_string(&policy.manifest).expect("manifest serialises");
     let metadata = HashMap::from([
         ("format".to_string(), "prac-bundle".to_string()),
-        (MANIFEST_KEY.to_string(), manifest),
+        (MANIFEST_KEY.to_string(), manifest.to_string()),
     ]);
     safetensors::serialize(views, Some(metadata))
 }
