@@ -6,6 +6,8 @@
 //! policy with random weights and stops it at the end. It always stops by itself: after
 //! --duration or --steps, and at the latest after a hard deadline.
 
+mod common;
+
 use std::collections::{BTreeMap, VecDeque};
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -21,6 +23,8 @@ use serde::Serialize;
 use tokio::sync::{Mutex, mpsc};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::transport::Channel;
+
+use common::{LocalServer, connect};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize)]
 #[serde(rename_all = "lowercase")]
@@ -190,29 +194,6 @@ impl Budget {
             _ => true,
         }
     }
-}
-
-/// A `prac serve` of its own on a random Hopper-sized bundle, with the folder it lives in.
-struct LocalServer {
-    server: prac::serve::local::LocalServer,
-    _dir: tempfile::TempDir,
-}
-
-async fn start_local_server(args: &Args) -> anyhow::Result<(String, LocalServer)> {
-    let dir = tempfile::tempdir()?;
-    let policy = prac::policy::Policy::random(prac::policy::hopper_sized_manifest(), 7);
-    prac::bundle::save(&policy, &dir.path().join("hopper-bench.safetensors"))?;
-    let bin = prac::serve::local::prac_binary(args.prac_bin.as_deref())?;
-    let server = prac::serve::local::LocalServer::start(&bin, dir.path(), &args.server_arg).await?;
-    Ok((server.addr.clone(), LocalServer { server, _dir: dir }))
-}
-
-async fn connect(addr: &str) -> anyhow::Result<PracClient<Channel>> {
-    let channel = Channel::from_shared(format!("http://{addr}"))?
-        .tcp_nodelay(true)
-        .connect()
-        .await?;
-    Ok(PracClient::new(channel))
 }
 
 fn session_options(args: &Args) -> proto::SessionOptions {
@@ -477,8 +458,8 @@ async fn run(args: Args) -> anyhow::Result<Report> {
     let (addr, local) = match &args.server {
         Some(addr) => (addr.clone(), None),
         None => {
-            let (addr, server) = start_local_server(&args).await?;
-            (addr, Some(server))
+            let server = LocalServer::start(args.prac_bin.as_deref(), &args.server_arg).await?;
+            (server.server.addr.clone(), Some(server))
         }
     };
     let policy = args

@@ -6,6 +6,8 @@
 //! With no --server it starts a local `prac serve` (loopback, ephemeral port, short session TTL)
 //! on a Hopper-sized policy with random weights.
 
+mod common;
+
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
@@ -22,6 +24,8 @@ use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::Code;
 use tonic::transport::Channel;
+
+use common::{LocalServer, connect};
 
 /// Soak test for prac serve.
 #[derive(Parser, Debug)]
@@ -146,14 +150,6 @@ fn rss_kib(pid: u32) -> Option<u64> {
         .lines()
         .find_map(|l| l.strip_prefix("VmRSS:"))
         .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
-}
-
-async fn connect(addr: &str) -> anyhow::Result<PracClient<Channel>> {
-    let channel = Channel::from_shared(format!("http://{addr}"))?
-        .tcp_nodelay(true)
-        .connect()
-        .await?;
-    Ok(PracClient::new(channel))
 }
 
 fn options(rng: &mut ChaCha8Rng) -> proto::SessionOptions {
@@ -376,21 +372,17 @@ fn main() -> std::process::ExitCode {
 async fn run(args: Args) -> anyhow::Result<Report> {
     let args = Arc::new(args);
     let mut _local = None;
+    let args_prac_bin = args.prac_bin.clone();
     let (addr, pid) = match &args.server {
         Some(addr) => (addr.clone(), args.server_pid),
         None => {
-            let dir = tempfile::tempdir()?;
-            let policy = prac::policy::Policy::random(prac::policy::hopper_sized_manifest(), 7);
-            prac::bundle::save(&policy, &dir.path().join("hopper-bench.safetensors"))?;
-            let bin = prac::serve::local::prac_binary(args.prac_bin.as_deref())?;
-            let server_args: Vec<String> = ["--session-ttl", "2s", "--max-sessions", "4096"]
+            let args: Vec<String> = ["--session-ttl", "2s", "--max-sessions", "4096"]
                 .iter()
                 .map(|s| s.to_string())
                 .collect();
-            let server =
-                prac::serve::local::LocalServer::start(&bin, dir.path(), &server_args).await?;
-            let found = (server.addr.clone(), server.pid());
-            _local = Some((server, dir));
+            let local = LocalServer::start(args_prac_bin.as_deref(), &args).await?;
+            let found = (local.server.addr.clone(), local.server.pid());
+            _local = Some(local);
             found
         }
     };
