@@ -69,22 +69,26 @@ class SessionOptions(_message.Message):
     def __init__(self, epsilon: _Optional[float] = ..., epsilon_coef: _Optional[float] = ..., grow: _Optional[int] = ..., fixed: _Optional[int] = ..., max_horizon: _Optional[int] = ..., sampled: _Optional[bool] = ..., seed: _Optional[int] = ...) -> None: ...
 
 class OpenSessionRequest(_message.Message):
-    __slots__ = ("policy", "options")
+    __slots__ = ("policy", "options", "resume")
     POLICY_FIELD_NUMBER: _ClassVar[int]
     OPTIONS_FIELD_NUMBER: _ClassVar[int]
+    RESUME_FIELD_NUMBER: _ClassVar[int]
     policy: str
     options: SessionOptions
-    def __init__(self, policy: _Optional[str] = ..., options: _Optional[_Union[SessionOptions, _Mapping]] = ...) -> None: ...
+    resume: Plan
+    def __init__(self, policy: _Optional[str] = ..., options: _Optional[_Union[SessionOptions, _Mapping]] = ..., resume: _Optional[_Union[Plan, _Mapping]] = ...) -> None: ...
 
 class OpenSessionResponse(_message.Message):
-    __slots__ = ("session_id", "policy", "options")
+    __slots__ = ("session_id", "policy", "options", "resumed_actions")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     POLICY_FIELD_NUMBER: _ClassVar[int]
     OPTIONS_FIELD_NUMBER: _ClassVar[int]
+    RESUMED_ACTIONS_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     policy: PolicyInfo
     options: ResolvedOptions
-    def __init__(self, session_id: _Optional[str] = ..., policy: _Optional[_Union[PolicyInfo, _Mapping]] = ..., options: _Optional[_Union[ResolvedOptions, _Mapping]] = ...) -> None: ...
+    resumed_actions: int
+    def __init__(self, session_id: _Optional[str] = ..., policy: _Optional[_Union[PolicyInfo, _Mapping]] = ..., options: _Optional[_Union[ResolvedOptions, _Mapping]] = ..., resumed_actions: _Optional[int] = ...) -> None: ...
 
 class ResolvedOptions(_message.Message):
     __slots__ = ("epsilon", "growth_mode", "growth", "max_horizon", "sampled", "seed")
