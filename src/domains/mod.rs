@@ -1,16 +1,19 @@
 //! Environments (issue 3): the task interface shared by training and the simulator client.
-//! Domains so far: `pendulum` (gymnasium's Pendulum-v1, no physics engine) and `lander`
-//! (LunarLanderContinuous on rapier2d).
+//! Domains: `pendulum` (gymnasium's Pendulum-v1, no physics engine), `lander`
+//! (LunarLanderContinuous on rapier2d), the planar walkers `hopper`, `walker` and `cheetah`
+//! (rapier2d) and the 3D walkers `ant` and `humanoid` (rapier3d multibodies).
 
 mod lander;
 mod pendulum;
 mod planar;
 pub mod scene;
+mod spatial;
 
 pub use lander::Lander;
 pub use pendulum::Pendulum;
 pub use planar::Planar;
 pub use scene::{Part, Scene, Shape};
+pub use spatial::Spatial;
 
 /// What a domain is: sizes, bounds and episode length.
 #[derive(Clone, Debug, PartialEq)]
@@ -118,7 +121,9 @@ fn check_obs_len(spec: &EnvSpec, obs: &[f32]) -> Result<(), EnvError> {
 }
 
 /// Every domain's name.
-pub const DOMAINS: &[&str] = &["lander", "hopper", "walker", "cheetah", "pendulum"];
+pub const DOMAINS: &[&str] = &[
+    "lander", "hopper", "walker", "cheetah", "ant", "humanoid", "pendulum",
+];
 
 /// A new environment of the named domain.
 pub fn make(name: &str) -> Option<Box<dyn Env>> {
@@ -127,6 +132,8 @@ pub fn make(name: &str) -> Option<Box<dyn Env>> {
         "hopper" => Some(Box::new(Planar::hopper())),
         "walker" => Some(Box::new(Planar::walker())),
         "cheetah" => Some(Box::new(Planar::cheetah())),
+        "ant" => Some(Box::new(Spatial::ant())),
+        "humanoid" => Some(Box::new(Spatial::humanoid())),
         "pendulum" => Some(Box::new(Pendulum::new())),
         _ => None,
     }

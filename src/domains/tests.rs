@@ -301,3 +301,104 @@ fn the_cheetah_never_terminates_and_weighs_what_the_model_says() {
     }
     assert_eq!(steps, 1000);
 }
+
+#[test]
+fn the_ant_and_humanoid_weigh_what_pybullet_gives_them() {
+    // PyBullet's MJCF importer: density 1000 over each geom's volume (ant.xml's own density 5 is
+    // ignored). Ant: 182.2 kg; Humanoid: 42.1 kg plus 7 hinge-chain links of 10 g.
+    for (mut env, expected) in [(Spatial::ant(), 182.18), (Spatial::humanoid(), 42.19)] {
+        let spec = env.spec().clone();
+        let mut obs = vec![0.0; spec.obs_dim];
+        env.reset(0, &mut obs).unwrap();
+        // rapier folds the chain links' own mass in at the first step.
+        env.step(&vec![0.0; spec.act_dim], &mut obs).unwrap();
+        let mass = env.total_mass();
+        assert!((mass - expected).abs() < 0.05, "{}: {mass}", spec.name);
+    }
+}
+
+#[test]
+fn the_humanoid_without_torques_falls_and_terminates() {
+    for seed in 0..3 {
+        let mut env = make("humanoid").unwrap();
+        let mut obs = [0.0f32; 44];
+        env.reset(seed, &mut obs).unwrap();
+        // PyBullet fixes the Humanoid's initial_z at 0.8; its torso starts at 1.4.
+        assert!((obs[0] - 0.6).abs() < 1e-5, "{}", obs[0]);
+        // Facing the target (the parts' mean y is a hair off 0 with the random joint angles).
+        assert!(obs[1].abs() < 1e-3 && obs[2] > 0.999, "{obs:?}");
+        let mut steps = 0;
+        let last = loop {
+            let t = env.step(&[0.0; 17], &mut obs).unwrap();
+            steps += 1;
+            if t.terminated || t.truncated {
+                break t;
+            }
+        };
+        assert!(last.terminated && !last.truncated, "seed {seed}");
+        assert!(last.reward < 0.0, "dying costs the alive bonus");
+        assert!(
+            obs[0] + 0.8 <= 0.78,
+            "seed {seed}: torso at {}",
+            obs[0] + 0.8
+        );
+        assert!(steps < 300, "seed {seed}: {steps}");
+    }
+}
+
+#[test]
+fn the_ant_at_rest_lands_on_its_feet_and_stays_alive() {
+    let mut env = make("ant").unwrap();
+    let mut obs = [0.0f32; 28];
+    env.reset(4, &mut obs).unwrap();
+    assert_eq!(obs[0], 0.0);
+    assert!(obs[1].abs() < 1e-3 && obs[2] > 0.999, "{obs:?}");
+    let mut steps = 0;
+    loop {
+        let t = env.step(&[0.0; 8], &mut obs).unwrap();
+        steps += 1;
+        assert!(!t.terminated, "step {steps}: {obs:?}");
+        if t.truncated {
+            break;
+        }
+    }
+    assert_eq!(steps, 1000);
+    // It dropped onto its four feet, which touch the ground.
+    assert!(obs[0] < -0.1, "{}", obs[0]);
+    assert_eq!(&obs[24..], &[1.0; 4]);
+}
+
+#[test]
+fn joint_torques_add_no_momentum_and_multibody_links_stay_jointed() {
+    for mut env in [Spatial::ant(), Spatial::humanoid()] {
+        let spec = env.spec().clone();
+        let mut obs = vec![0.0f32; spec.obs_dim];
+        env.reset(1, &mut obs).unwrap();
+        env.set_gravity_for_test(0.0);
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        // The angular impulse the joints applied: what one-sided torques would have added.
+        let mut impulse = 0.0;
+        for _ in 0..40 {
+            let action: Vec<f32> = (0..spec.act_dim)
+                .map(|_| rng.random_range(-1.0..=1.0))
+                .collect();
+            impulse += env.torque_impulse_for_test(&action);
+            env.step(&action, &mut obs).unwrap();
+        }
+        // What is left is the multibody integrator's drift, about 1% of that impulse.
+        let (linear, angular) = env.momentum_for_test();
+        assert!(impulse > 100.0, "{}: {impulse}", spec.name);
+        assert!(
+            linear < 0.02 * impulse,
+            "{}: linear momentum {linear}",
+            spec.name
+        );
+        assert!(
+            angular < 0.02 * impulse,
+            "{}: angular momentum {angular}",
+            spec.name
+        );
+        let gap = env.largest_joint_gap_for_test();
+        assert!(gap < 1e-3, "{}: a joint came apart by {gap} m", spec.name);
+    }
+}

@@ -1,0 +1,845 @@
+//! 3D PyBullet walkers on rapier3d: Ant and Humanoid. Each robot is one multibody (reduced
+//! coordinates, so joints never drift apart) whose links follow the MJCF models PyBullet loads
+//! (ant.xml, humanoid_symmetric.xml), with PyBullet's WalkerBase task interface: observation,
+//! reward terms and termination.
+//!
+//! A MuJoCo body with several hinges (the Humanoid's hips, abdomen and shoulders) becomes a chain
+//! of one-hinge links, as PyBullet's MJCF importer does; the links in between carry no shape.
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rapier3d::glamx::EulerRot;
+use rapier3d::prelude::*;
+
+use super::scene::{Part, Scene, Shape};
+use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, clip_action, wrap_angle};
+
+const CONTROL_PERIOD: f32 = 0.0165;
+const SUBSTEPS: usize = 4;
+const GRAVITY: f32 = 9.8;
+/// PyBullet's walk target, far ahead on x.
+const TARGET_X: f32 = 1000.0;
+/// PyBullet's MJCF importer ignores `density` and gives every geom 1000 kg/m^3.
+const DENSITY: f32 = 1000.0;
+/// PyBullet's stadium floor friction (0.8), multiplied by the geom's as Bullet combines them.
+const FLOOR_FRICTION: f32 = 0.8;
+/// Links that only chain several hinges of one MuJoCo body: no shape, a token mass so the link
+/// has a well-defined inertia.
+const CHAIN_LINK_MASS: f32 = 0.01;
+/// Joint angles and speeds, then feet contacts, after the 8 "more" values.
+const MORE: usize = 8;
+
+#[derive(Clone, Copy)]
+enum Geom {
+    /// Endpoints and radius, in world coordinates at rest.
+    Capsule(Vector, Vector, f32),
+    /// Centre and radius, in world coordinates at rest.
+    Sphere(Vector, f32),
+}
+
+impl Geom {
+    /// The volume PyBullet's MJCF importer computes (a capsule is its cylinder plus one sphere).
+    fn mass(&self) -> f32 {
+        use std::f32::consts::PI;
+        let volume = match *self {
+            Geom::Capsule(a, b, r) => PI * r * r * (b - a).length() + 4.0 / 3.0 * PI * r.powi(3),
+            Geom::Sphere(_, r) => 4.0 / 3.0 * PI * r.powi(3),
+        };
+        DENSITY * volume
+    }
+}
+
+/// One link: at rest its frame sits at `origin` (its hinge's anchor), unrotated.
+struct LinkDef {
+    /// None for the root (the torso).
+    parent: Option<usize>,
+    origin: Vector,
+    /// The hinge axis (unit, the same in world, parent and link frames at rest); unused for the
+    /// root.
+    axis: Vector,
+    /// Limits in radians, the torque of a unit action and the joint's damping (N m s).
+    range: (f32, f32),
+    torque: f32,
+    damping: f32,
+    geoms: Vec<Geom>,
+}
+
+/// PyBullet's alive bonus: `bonus` while the torso is above `min_z`, else -1 and the episode ends.
+struct Alive {
+    min_z: f32,
+    bonus: f64,
+}
+
+struct RobotDef {
+    name: &'static str,
+    /// Root first; every parent before its children. Links 1.. are the actuated joints in
+    /// PyBullet's order.
+    links: Vec<LinkDef>,
+    /// Per observed foot (PyBullet's foot_list order): the links whose shapes count as that foot.
+    feet: Vec<usize>,
+    alive: Alive,
+    /// PyBullet's initial_z: None takes the torso's height after reset.
+    initial_z: Option<f32>,
+    /// Multiplies PyBullet's electricity and stall costs (Humanoid: 4.25).
+    cost_scale: f64,
+    /// Bullet's combined friction of the robot's geoms on the floor.
+    friction: f32,
+}
+
+fn v(x: f32, y: f32, z: f32) -> Vector {
+    Vector::new(x, y, z)
+}
+
+/// A hinge link; `geoms` are given relative to `origin` (the MJCF body's frame when the joint
+/// sits at the body's origin).
+#[allow(clippy::too_many_arguments)]
+fn hinge(
+    parent: usize,
+    origin: Vector,
+    axis: Vector,
+    range_deg: (f32, f32),
+    torque: f32,
+    damping: f32,
+    geoms: Vec<Geom>,
+) -> LinkDef {
+    let deg = std::f32::consts::PI / 180.0;
+    LinkDef {
+        parent: Some(parent),
+        origin,
+        axis: axis.normalize(),
+        range: (range_deg.0 * deg, range_deg.1 * deg),
+        torque,
+        damping,
+        geoms,
+    }
+}
+
+fn capsule(a: Vector, b: Vector, r: f32) -> Geom {
+    Geom::Capsule(a, b, r)
+}
+
+/// ant.xml: a sphere torso at 0.75 m with four legs of hip (about z, +-40 deg) and ankle hinges;
+/// PyBullet's power 2.5 x 100 = 250 N m per unit action.
+fn ant() -> RobotDef {
+    let torso = v(0.0, 0.0, 0.75);
+    let r = 0.08;
+    let torque = 250.0;
+    let damping = 1.0;
+    let mut torso_geoms = vec![Geom::Sphere(torso, 0.25)];
+    let mut links = Vec::new();
+    // (leg direction in x-y, ankle axis, ankle range): front_left, front_right, left_back,
+    // right_back, in the file's order.
+    let legs = [
+        ((1.0, 1.0), v(-1.0, 1.0, 0.0), (30.0, 100.0)),
+        ((-1.0, 1.0), v(1.0, 1.0, 0.0), (-100.0, -30.0)),
+        ((-1.0, -1.0), v(-1.0, 1.0, 0.0), (-100.0, -30.0)),
+        ((1.0, -1.0), v(1.0, 1.0, 0.0), (30.0, 100.0)),
+    ];
+    let mut feet = Vec::new();
+    for ((dx, dy), ankle_axis, ankle_range) in legs {
+        let step = v(0.2 * dx, 0.2 * dy, 0.0);
+        let hip = torso + step;
+        let ankle = hip + step;
+        torso_geoms.push(capsule(torso, hip, r));
+        let hip_link = links.len() + 1;
+        links.push(hinge(
+            0,
+            hip,
+            v(0.0, 0.0, 1.0),
+            (-40.0, 40.0),
+            torque,
+            damping,
+            vec![capsule(hip, ankle, r)],
+        ));
+        feet.push(links.len() + 1);
+        links.push(hinge(
+            hip_link,
+            ankle,
+            ankle_axis,
+            ankle_range,
+            torque,
+            damping,
+            vec![capsule(ankle, ankle + step * 2.0, r)],
+        ));
+    }
+    let root = LinkDef {
+        parent: None,
+        origin: torso,
+        axis: Vector::ZERO,
+        range: (0.0, 0.0),
+        torque: 0.0,
+        damping: 0.0,
+        geoms: torso_geoms,
+    };
+    links.insert(0, root);
+    RobotDef {
+        name: "ant",
+        links,
+        feet,
+        // 0.25 is the torso sphere's radius: it dies when it scrapes the ground.
+        alive: Alive {
+            min_z: 0.26,
+            bonus: 1.0,
+        },
+        initial_z: None,
+        cost_scale: 1.0,
+        friction: 1.5 * FLOOR_FRICTION,
+    }
+}
+
+/// humanoid_symmetric.xml with PyBullet's motor powers x 0.41. Positions are the model's, summed
+/// down the body tree (its near-identity body quaternions are dropped).
+fn humanoid() -> RobotDef {
+    let torso = v(0.0, 0.0, 1.4);
+    let at = |base: Vector, x: f32, y: f32, z: f32| base + v(x, y, z);
+    let power = 0.41;
+    let mut links = vec![LinkDef {
+        parent: None,
+        origin: torso,
+        axis: Vector::ZERO,
+        range: (0.0, 0.0),
+        torque: 0.0,
+        damping: 0.0,
+        geoms: vec![
+            capsule(at(torso, 0.0, -0.07, 0.0), at(torso, 0.0, 0.07, 0.0), 0.07),
+            Geom::Sphere(at(torso, 0.0, 0.0, 0.19), 0.09),
+            capsule(
+                at(torso, -0.01, -0.06, -0.12),
+                at(torso, -0.01, 0.06, -0.12),
+                0.06,
+            ),
+        ],
+    }];
+    let mut add = |link: LinkDef| {
+        links.push(link);
+        links.len() - 1
+    };
+    let lwaist = at(torso, -0.01, 0.0, -0.26);
+    let abdomen = at(lwaist, 0.0, 0.0, 0.065);
+    let abdomen_z = add(hinge(
+        0,
+        abdomen,
+        v(0.0, 0.0, 1.0),
+        (-45.0, 45.0),
+        100.0 * power,
+        5.0,
+        vec![],
+    ));
+    let abdomen_y = add(hinge(
+        abdomen_z,
+        abdomen,
+        v(0.0, 1.0, 0.0),
+        (-75.0, 30.0),
+        100.0 * power,
+        5.0,
+        vec![capsule(
+            at(lwaist, 0.0, -0.06, 0.0),
+            at(lwaist, 0.0, 0.06, 0.0),
+            0.06,
+        )],
+    ));
+    let pelvis = at(lwaist, 0.0, 0.0, -0.165);
+    let abdomen_x = add(hinge(
+        abdomen_y,
+        at(pelvis, 0.0, 0.0, 0.1),
+        v(1.0, 0.0, 0.0),
+        (-35.0, 35.0),
+        100.0 * power,
+        5.0,
+        vec![capsule(
+            at(pelvis, -0.02, -0.07, 0.0),
+            at(pelvis, -0.02, 0.07, 0.0),
+            0.09,
+        )],
+    ));
+    let mut feet = Vec::new();
+    // Right leg then left: the left one mirrors y and its hip x and z axes.
+    for side in [-1.0f32, 1.0] {
+        let thigh = at(pelvis, 0.0, 0.1 * side, -0.04);
+        let hip_x = add(hinge(
+            abdomen_x,
+            thigh,
+            v(side * -1.0, 0.0, 0.0),
+            (-25.0, 5.0),
+            100.0 * power,
+            5.0,
+            vec![],
+        ));
+        let hip_z = add(hinge(
+            hip_x,
+            thigh,
+            v(0.0, 0.0, side * -1.0),
+            (-60.0, 35.0),
+            100.0 * power,
+            5.0,
+            vec![],
+        ));
+        let hip_y = add(hinge(
+            hip_z,
+            thigh,
+            v(0.0, 1.0, 0.0),
+            (-120.0, 20.0),
+            300.0 * power,
+            5.0,
+            vec![capsule(thigh, at(thigh, 0.0, -0.01 * side, -0.34), 0.06)],
+        ));
+        let shin = at(thigh, 0.0, -0.01 * side, -0.403);
+        let foot = at(shin, 0.0, 0.0, -0.45);
+        let knee = add(hinge(
+            hip_y,
+            at(shin, 0.0, 0.0, 0.02),
+            v(0.0, -1.0, 0.0),
+            (-160.0, -2.0),
+            200.0 * power,
+            1.0,
+            // The foot is fixed to the shin (no joint in the model).
+            vec![
+                capsule(shin, at(shin, 0.0, 0.0, -0.3), 0.049),
+                Geom::Sphere(at(foot, 0.0, 0.0, 0.1), 0.075),
+            ],
+        ));
+        feet.push(knee);
+    }
+    // Right arm then left: y mirrored, and the model's own axes per side.
+    for (side, shoulder1, shoulder2, elbow, range) in [
+        (
+            -1.0f32,
+            v(2.0, 1.0, 1.0),
+            v(0.0, -1.0, 1.0),
+            v(0.0, -1.0, 1.0),
+            (-85.0, 60.0),
+        ),
+        (
+            1.0,
+            v(2.0, -1.0, 1.0),
+            v(0.0, 1.0, 1.0),
+            v(0.0, -1.0, -1.0),
+            (-60.0, 85.0),
+        ),
+    ] {
+        let upper = at(torso, 0.0, 0.17 * side, 0.06);
+        let first = add(hinge(0, upper, shoulder1, range, 75.0 * power, 1.0, vec![]));
+        let second = add(hinge(
+            first,
+            upper,
+            shoulder2,
+            range,
+            75.0 * power,
+            1.0,
+            vec![capsule(upper, at(upper, 0.16, 0.16 * side, -0.16), 0.04)],
+        ));
+        let lower = at(upper, 0.18, 0.18 * side, -0.18);
+        add(hinge(
+            second,
+            lower,
+            elbow,
+            (-90.0, 50.0),
+            75.0 * power,
+            1.0,
+            vec![
+                capsule(
+                    at(lower, 0.01, -0.01 * side, 0.01),
+                    at(lower, 0.17, -0.17 * side, 0.17),
+                    0.031,
+                ),
+                Geom::Sphere(at(lower, 0.18, -0.18 * side, 0.18), 0.04),
+            ],
+        ));
+    }
+    RobotDef {
+        name: "humanoid",
+        links,
+        feet,
+        alive: Alive {
+            min_z: 0.78,
+            bonus: 2.0,
+        },
+        // PyBullet sets it to 0.8 for the Humanoid.
+        initial_z: Some(0.8),
+        cost_scale: 4.25,
+        friction: 0.8 * FLOOR_FRICTION,
+    }
+}
+
+/// A 3D walker (Ant, Humanoid).
+pub struct Spatial {
+    robot: RobotDef,
+    spec: EnvSpec,
+    world: PhysicsWorld,
+    ground: ColliderHandle,
+    bodies: Vec<RigidBodyHandle>,
+    /// Per link, its colliders.
+    colliders: Vec<Vec<ColliderHandle>>,
+    initial_z: f32,
+    potential: f64,
+    steps: u32,
+    over: bool,
+    /// Joint positions (normalised) and speeds (x 0.1), PyBullet's `j`.
+    joint_state: Vec<f32>,
+    action: Vec<f32>,
+}
+
+/// PyBullet's electricity and stall costs (per mean over joints) and the joint-limit cost.
+const ELECTRICITY_COST: f64 = -2.0;
+const STALL_TORQUE_COST: f64 = -0.1;
+const JOINTS_AT_LIMIT_COST: f64 = -0.1;
+
+impl Spatial {
+    pub fn ant() -> Spatial {
+        Spatial::new(ant())
+    }
+
+    pub fn humanoid() -> Spatial {
+        Spatial::new(humanoid())
+    }
+
+    fn new(robot: RobotDef) -> Spatial {
+        let n = robot.links.len() - 1;
+        let obs_dim = MORE + 2 * n + robot.feet.len();
+        let spec = EnvSpec {
+            name: robot.name,
+            obs_dim,
+            act_dim: n,
+            obs_low: vec![-5.0; obs_dim],
+            obs_high: vec![5.0; obs_dim],
+            action_low: vec![-1.0; n],
+            action_high: vec![1.0; n],
+            episode_len: 1000,
+            control_period: f64::from(CONTROL_PERIOD),
+            engine: "rapier3d",
+        };
+        let mut env = Spatial {
+            robot,
+            spec,
+            world: PhysicsWorld::default(),
+            ground: ColliderHandle::invalid(),
+            bodies: Vec::new(),
+            colliders: Vec::new(),
+            initial_z: 0.0,
+            potential: 0.0,
+            steps: 0,
+            over: true,
+            joint_state: vec![0.0; 2 * n],
+            action: vec![0.0; n],
+        };
+        env.build(&vec![0.0; n]);
+        env
+    }
+
+    /// A fresh world with the robot posed at the given joint angles.
+    fn build(&mut self, angles: &[f32]) {
+        let mut world = PhysicsWorld {
+            gravity: v(0.0, 0.0, -GRAVITY),
+            ..Default::default()
+        };
+        world.integration_parameters.dt = CONTROL_PERIOD / SUBSTEPS as f32;
+        // The robot touches only the floor (no self-collision; see docs/domains.md).
+        let robot_group =
+            InteractionGroups::new(Group::GROUP_1, Group::GROUP_2, InteractionTestMode::And);
+        let ground_group =
+            InteractionGroups::new(Group::GROUP_2, Group::ALL, InteractionTestMode::And);
+        let (_, ground) = world.insert(
+            RigidBodyBuilder::fixed().translation(v(0.0, 0.0, -0.5)),
+            ColliderBuilder::cuboid(2000.0, 2000.0, 0.5)
+                .friction(self.robot.friction)
+                .collision_groups(ground_group),
+        );
+        let mut bodies = Vec::new();
+        let mut colliders = Vec::new();
+        for link in &self.robot.links {
+            let mut builder = RigidBodyBuilder::dynamic()
+                .translation(link.origin)
+                .can_sleep(false);
+            if link.geoms.is_empty() {
+                let inertia = CHAIN_LINK_MASS * 0.01;
+                builder = builder.additional_mass_properties(MassProperties::new(
+                    Vector::ZERO,
+                    CHAIN_LINK_MASS,
+                    Vector::splat(inertia),
+                ));
+            }
+            let body = world.insert_body(builder);
+            let handles = link
+                .geoms
+                .iter()
+                .map(|geom| {
+                    let shape = match *geom {
+                        Geom::Capsule(a, b, r) => ColliderBuilder::capsule_from_endpoints(
+                            a - link.origin,
+                            b - link.origin,
+                            r,
+                        ),
+                        Geom::Sphere(c, r) => ColliderBuilder::ball(r).translation(c - link.origin),
+                    };
+                    world.insert_collider(
+                        shape
+                            .mass(geom.mass())
+                            .friction(self.robot.friction)
+                            .collision_groups(robot_group),
+                        Some(body),
+                    )
+                })
+                .collect();
+            bodies.push(body);
+            colliders.push(handles);
+        }
+        let mut joint_handles = Vec::new();
+        for (k, link) in self.robot.links.iter().enumerate().skip(1) {
+            let parent = link.parent.expect("links after the root have a parent");
+            let hinge = RevoluteJointBuilder::new(link.axis)
+                .local_anchor1(link.origin - self.robot.links[parent].origin)
+                .local_anchor2(Vector::ZERO)
+                .limits([link.range.0, link.range.1])
+                .contacts_enabled(false);
+            let handle = world
+                .insert_multibody_joint(bodies[parent], bodies[k], hinge)
+                .expect("the robot is a tree");
+            joint_handles.push(handle);
+        }
+        // Joint angles, damping and no default damping elsewhere, then the links' poses from them.
+        if let Some(&first) = joint_handles.first() {
+            let (multibody, _) = world
+                .multibody_joints
+                .get_mut(first)
+                .expect("the joint was just inserted");
+            multibody.forward_kinematics(&world.bodies, true);
+            let mut displacement = vec![0.0; multibody.ndofs()];
+            multibody.damping_mut().fill(0.0);
+            for (k, link) in self.robot.links.iter().enumerate().skip(1) {
+                let dof = multibody
+                    .link(k)
+                    .expect("links are numbered in insertion order")
+                    .assembly_id();
+                displacement[dof] = angles[k - 1];
+                multibody.damping_mut()[dof] = link.damping;
+            }
+            multibody.apply_displacements(&displacement);
+            multibody.forward_kinematics(&world.bodies, true);
+            multibody.update_rigid_bodies(&mut world.bodies, true);
+        }
+        self.world = world;
+        self.ground = ground;
+        self.bodies = bodies;
+        self.colliders = colliders;
+    }
+
+    /// The robot's mass in kg.
+    pub fn total_mass(&self) -> f32 {
+        self.bodies
+            .iter()
+            .map(|&b| self.world.bodies[b].mass())
+            .sum()
+    }
+
+    fn torso(&self) -> &RigidBody {
+        &self.world.bodies[self.bodies[0]]
+    }
+
+    /// PyBullet's body_xyz: x and y averaged over the parts (here the links with shapes, at
+    /// their centres of mass), z the torso's.
+    fn body_xyz(&self) -> Vector {
+        let (mut x, mut y, mut parts) = (0.0, 0.0, 0.0);
+        for (link, &body) in self.robot.links.iter().zip(&self.bodies) {
+            if !link.geoms.is_empty() {
+                let c = self.world.bodies[body].center_of_mass();
+                x += c.x;
+                y += c.y;
+                parts += 1.0;
+            }
+        }
+        v(x / parts, y / parts, self.torso().translation().z)
+    }
+
+    /// PyBullet's potential: minus the distance to the target per control period.
+    fn potential(&self) -> f64 {
+        let p = self.body_xyz();
+        let distance = (TARGET_X - p.x).hypot(p.y);
+        -f64::from(distance) / f64::from(CONTROL_PERIOD)
+    }
+
+    fn read_joints(&mut self) {
+        for (k, link) in self.robot.links.iter().enumerate().skip(1) {
+            let parent = &self.world.bodies[self.bodies[link.parent.unwrap_or(0)]];
+            let child = &self.world.bodies[self.bodies[k]];
+            // Every link is unrotated at rest, so the relative rotation is about the axis.
+            let relative = parent.rotation().inverse() * *child.rotation();
+            let along =
+                relative.x * link.axis.x + relative.y * link.axis.y + relative.z * link.axis.z;
+            let q = wrap_angle(f64::from(2.0 * along.atan2(relative.w))) as f32;
+            let world_axis = *child.rotation() * link.axis;
+            let qdot = (child.angvel() - parent.angvel()).dot(world_axis);
+            let (lo, hi) = link.range;
+            let mid = 0.5 * (lo + hi);
+            self.joint_state[2 * (k - 1)] = 2.0 * (q - mid) / (hi - lo);
+            self.joint_state[2 * (k - 1) + 1] = 0.1 * qdot;
+        }
+    }
+
+    fn touching(&self, link: usize) -> bool {
+        self.colliders[link].iter().any(|&c| {
+            self.world
+                .contact_pair(c, self.ground)
+                .is_some_and(|pair| pair.has_any_active_contact())
+        })
+    }
+
+    /// PyBullet's calc_state, written into obs; returns (torso z, pitch).
+    fn observe(&mut self, obs: &mut [f32]) -> (f32, f32) {
+        self.read_joints();
+        let p = self.body_xyz();
+        let torso = self.torso();
+        let (yaw, pitch, roll) = torso.rotation().to_euler(EulerRot::ZYX);
+        let angle_to_target = (-p.y).atan2(TARGET_X - p.x) - yaw;
+        let speed = torso.linvel();
+        let (s, c) = (-yaw).sin_cos();
+        let more = [
+            p.z - self.initial_z,
+            angle_to_target.sin(),
+            angle_to_target.cos(),
+            0.3 * (c * speed.x - s * speed.y),
+            0.3 * (s * speed.x + c * speed.y),
+            0.3 * speed.z,
+            roll,
+            pitch,
+        ];
+        obs[..MORE].copy_from_slice(&more);
+        let joints = self.joint_state.len();
+        obs[MORE..MORE + joints].copy_from_slice(&self.joint_state);
+        for (k, &foot) in self.robot.feet.iter().enumerate() {
+            obs[MORE + joints + k] = f32::from(u8::from(self.touching(foot)));
+        }
+        for x in obs.iter_mut() {
+            *x = x.clamp(-5.0, 5.0);
+        }
+        (p.z, pitch)
+    }
+}
+
+/// The fixed camera: an oblique view from the robot's right, y receding up and to the right.
+fn project(p: Vector) -> (f64, f64) {
+    let depth = 0.35;
+    (
+        f64::from(p.x + depth * p.y),
+        f64::from(p.z + 0.5 * depth * p.y),
+    )
+}
+
+impl Env for Spatial {
+    fn spec(&self) -> &EnvSpec {
+        &self.spec
+    }
+
+    fn scene(&self) -> Scene {
+        let centre = self.torso().translation();
+        let mut shapes = Vec::new();
+        // A 1 m floor grid around the robot.
+        let (x0, y0) = (centre.x.floor(), centre.y.floor());
+        for i in -3..=3 {
+            let d = i as f32;
+            shapes.push((
+                Part::Ground,
+                Shape::Polyline(vec![
+                    project(v(x0 + d, y0 - 3.0, 0.0)),
+                    project(v(x0 + d, y0 + 3.0, 0.0)),
+                ]),
+            ));
+            shapes.push((
+                Part::Ground,
+                Shape::Polyline(vec![
+                    project(v(x0 - 3.0, y0 + d, 0.0)),
+                    project(v(x0 + 3.0, y0 + d, 0.0)),
+                ]),
+            ));
+        }
+        // Far links first, so nearer ones are drawn over them.
+        let mut parts: Vec<(f32, Shape)> = Vec::new();
+        for handles in &self.colliders {
+            for &h in handles {
+                let collider = &self.world.colliders[h];
+                let pose = collider.position();
+                match collider.shape().as_typed_shape() {
+                    TypedShape::Capsule(c) => {
+                        let (a, b) = (
+                            pose.transform_point(c.segment.a),
+                            pose.transform_point(c.segment.b),
+                        );
+                        let shape = Shape::Capsule(project(a), project(b), f64::from(c.radius));
+                        parts.push((a.y.max(b.y), shape));
+                    }
+                    TypedShape::Ball(b) => {
+                        let c = pose.transform_point(Vector::ZERO);
+                        parts.push((c.y, Shape::Circle(project(c), f64::from(b.radius))));
+                    }
+                    _ => {}
+                }
+            }
+        }
+        parts.sort_by(|a, b| b.0.total_cmp(&a.0));
+        shapes.extend(parts.into_iter().map(|(_, s)| (Part::Body, s)));
+        let (cx, cy) = project(v(centre.x, centre.y, 0.0));
+        Scene {
+            shapes,
+            center: (cx, cy + 0.7),
+            width: 4.0,
+            height: 2.4,
+        }
+    }
+
+    fn trace(&self, predicted: &[f32]) -> Vec<(f64, f64)> {
+        let dt = CONTROL_PERIOD;
+        let torso = self.torso().translation();
+        let (mut x, mut y) = (torso.x, torso.y);
+        predicted
+            .chunks_exact(self.spec.obs_dim)
+            .map(|o| {
+                // "more" holds 0.3 x the yaw-rotated speed; heading stays near x for a walker.
+                x += o[3] / 0.3 * dt;
+                y += o[4] / 0.3 * dt;
+                project(v(x, y, o[0] + self.initial_z))
+            })
+            .collect()
+    }
+
+    fn reset(&mut self, seed: u64, obs: &mut [f32]) -> Result<(), EnvError> {
+        check_obs_len(&self.spec, obs)?;
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        // PyBullet draws U(-0.1, 0.1) per joint; a draw outside the limits (the Ant's ankles)
+        // starts at the limit, where Bullet's limit puts it in the first step.
+        let angles: Vec<f32> = self.robot.links[1..]
+            .iter()
+            .map(|link| {
+                rng.random_range(-0.1f32..0.1)
+                    .clamp(link.range.0, link.range.1)
+            })
+            .collect();
+        self.build(&angles);
+        self.initial_z = self
+            .robot
+            .initial_z
+            .unwrap_or_else(|| self.torso().translation().z);
+        self.potential = self.potential();
+        self.steps = 0;
+        self.over = false;
+        self.observe(obs);
+        Ok(())
+    }
+
+    fn step(&mut self, action: &[f32], obs: &mut [f32]) -> Result<Transition, EnvError> {
+        check_obs_len(&self.spec, obs)?;
+        let mut a = std::mem::take(&mut self.action);
+        let clipped = clip_action(&self.spec, action, &mut a);
+        if let Err(e) = clipped {
+            self.action = a;
+            return Err(e);
+        }
+        if self.over {
+            self.action = a;
+            return Err(EnvError::EpisodeOver);
+        }
+        // Joint torques as equal and opposite torques on child and parent: no spurious momentum.
+        for (k, link) in self.robot.links.iter().enumerate().skip(1) {
+            let parent = self.bodies[link.parent.unwrap_or(0)];
+            let child = self.bodies[k];
+            let world_axis = *self.world.bodies[child].rotation() * link.axis;
+            let tau = world_axis * (link.torque * a[k - 1]);
+            self.world.bodies[child].add_torque(tau, true);
+            self.world.bodies[parent].add_torque(-tau, true);
+        }
+        for _ in 0..SUBSTEPS {
+            self.world.step();
+        }
+        for &body in &self.bodies {
+            self.world.bodies[body].reset_torques(false);
+        }
+        let (z, _pitch) = self.observe(obs);
+        let alive = if z > self.robot.alive.min_z {
+            self.robot.alive.bonus
+        } else {
+            -1.0
+        };
+        let old_potential = self.potential;
+        self.potential = self.potential();
+        let progress = self.potential - old_potential;
+        let n = a.len() as f64;
+        let speeds = self.joint_state.iter().skip(1).step_by(2);
+        let electricity = self.robot.cost_scale
+            * (ELECTRICITY_COST
+                * a.iter()
+                    .zip(speeds)
+                    .map(|(u, s)| f64::from((u * s).abs()))
+                    .sum::<f64>()
+                / n
+                + STALL_TORQUE_COST * a.iter().map(|u| f64::from(u * u)).sum::<f64>() / n);
+        let at_limit = self
+            .joint_state
+            .iter()
+            .step_by(2)
+            .filter(|q| q.abs() > 0.99)
+            .count() as f64;
+        let reward = alive + progress + electricity + JOINTS_AT_LIMIT_COST * at_limit;
+        self.action = a;
+        self.steps += 1;
+        let terminated = alive < 0.0;
+        let truncated = !terminated && self.steps >= self.spec.episode_len;
+        self.over = terminated || truncated;
+        Ok(Transition {
+            reward,
+            terminated,
+            truncated,
+        })
+    }
+}
+
+#[cfg(test)]
+impl Spatial {
+    /// Changes gravity and, with none, takes the floor away: a free-floating robot.
+    pub(super) fn set_gravity_for_test(&mut self, g: f32) {
+        self.world.gravity = v(0.0, 0.0, -g);
+        if g == 0.0 {
+            self.world.remove_collider(self.ground);
+        }
+    }
+
+    /// The sum of |torque| over the joints for one step of `action`, times the control period.
+    pub(super) fn torque_impulse_for_test(&self, action: &[f32]) -> f32 {
+        let links = &self.robot.links[1..];
+        links
+            .iter()
+            .zip(action)
+            .map(|(link, u)| (link.torque * u).abs() * CONTROL_PERIOD)
+            .sum()
+    }
+
+    /// The magnitudes of the robot's total linear momentum and of its angular momentum about
+    /// the origin.
+    pub(super) fn momentum_for_test(&self) -> (f32, f32) {
+        let (mut linear, mut angular) = (Vector::ZERO, Vector::ZERO);
+        for &h in &self.bodies {
+            let body = &self.world.bodies[h];
+            let p = body.linvel() * body.mass();
+            linear += p;
+            let local = &body.mass_properties().local_mprops;
+            let frame = *body.rotation() * local.principal_inertia_local_frame;
+            let spin = frame * (local.principal_inertia() * (frame.inverse() * body.angvel()));
+            angular += body.center_of_mass().cross(p) + spin;
+        }
+        (linear.length(), angular.length())
+    }
+
+    /// The largest distance between a hinge's anchor as seen from the parent and the child.
+    pub(super) fn largest_joint_gap_for_test(&self) -> f32 {
+        let links = &self.robot.links;
+        links
+            .iter()
+            .enumerate()
+            .skip(1)
+            .map(|(k, link)| {
+                let parent = link.parent.unwrap_or(0);
+                let from_parent = self.world.bodies[self.bodies[parent]]
+                    .position()
+                    .transform_point(link.origin - links[parent].origin);
+                (from_parent - self.world.bodies[self.bodies[k]].translation()).length()
+            })
+            .fold(0.0, f32::max)
+    }
+}
