@@ -259,7 +259,7 @@ fn humanoid() -> RobotDef {
         let hip_x = add(hinge(
             abdomen_x,
             thigh,
-            v(side * -1.0, 0.0, 0.0),
+            v(-side, 0.0, 0.0),
             (-25.0, 5.0),
             100.0 * power,
             5.0,
@@ -268,7 +268,7 @@ fn humanoid() -> RobotDef {
         let hip_z = add(hinge(
             hip_x,
             thigh,
-            v(0.0, 0.0, side * -1.0),
+            v(0.0, 0.0, -side),
             (-60.0, 35.0),
             100.0 * power,
             5.0,
