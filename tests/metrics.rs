@@ -42,18 +42,7 @@ async fn metrics_count_steps_sessions_and_errors() {
     let mut client = server.client().await;
     let mut ids = Vec::new();
     for _ in 0..2 {
-        ids.push(
-            client
-                .open_session(proto::OpenSessionRequest {
-                    policy: "toy".into(),
-                    options: None,
-                    resume: None,
-                })
-                .await
-                .unwrap()
-                .into_inner()
-                .session_id,
-        );
+        ids.push(common::open_default_session(&mut client, "toy").await);
     }
     for k in 0..5 {
         client

@@ -39,19 +39,6 @@ async fn wait_for(client: &mut Client, what: &str, ok: impl Fn(&[(String, String
     }
 }
 
-async fn open(client: &mut Client) -> String {
-    client
-        .open_session(proto::OpenSessionRequest {
-            policy: "toy".into(),
-            options: None,
-            resume: None,
-        })
-        .await
-        .unwrap()
-        .into_inner()
-        .session_id
-}
-
 /// The action of a fresh plan at `obs`: a function of the session's policy only.
 async fn first_action(client: &mut Client, session: &str, obs: &[f32]) -> Vec<f32> {
     client
@@ -75,7 +62,7 @@ async fn sighup_reloads_bundles_without_touching_open_sessions() {
     let mut client = server.client().await;
     let before = hashes(&mut client).await;
     let obs = [0.3f32, -0.2, 0.7];
-    let old_session = open(&mut client).await;
+    let old_session = common::open_default_session(&mut client, "toy").await;
     let old_action = first_action(&mut client, &old_session, &obs).await;
 
     // Replace toy (written aside, then renamed: a reload never sees half a file) and add extra.
@@ -90,7 +77,7 @@ async fn sighup_reloads_bundles_without_touching_open_sessions() {
     .await;
     let after = hashes(&mut client).await;
 
-    let new_session = open(&mut client).await;
+    let new_session = common::open_default_session(&mut client, "toy").await;
     let new_action = first_action(&mut client, &new_session, &obs).await;
     assert_ne!(
         new_action, old_action,
@@ -115,7 +102,7 @@ async fn sighup_reloads_bundles_without_touching_open_sessions() {
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
     assert_eq!(hashes(&mut client).await, after);
-    let third = open(&mut client).await;
+    let third = common::open_default_session(&mut client, "toy").await;
     assert_eq!(first_action(&mut client, &third, &obs).await, new_action);
     assert_eq!(
         first_action(&mut client, &old_session, &obs).await,

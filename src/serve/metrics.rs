@@ -98,10 +98,16 @@ impl Default for Metrics {
 }
 
 impl Metrics {
-    pub fn step(&self, policy: &str, latency: Duration, forecast: usize, broke: bool) {
+    /// The step counter of one policy, taken once per session so a step allocates nothing.
+    pub fn policy_steps(&self, policy: &str) -> Counter {
         self.steps
             .get_or_create(&vec![("policy", policy.to_string())])
-            .inc();
+            .clone()
+    }
+
+    /// One step served: `steps` is its policy's counter (`policy_steps`).
+    pub fn step(&self, steps: &Counter, latency: Duration, forecast: usize, broke: bool) {
+        steps.inc();
         self.step_latency.observe(latency.as_secs_f64());
         self.forecast_length.observe(forecast as f64);
         if broke {

@@ -131,11 +131,10 @@ impl ServerState {
                 return Err(status);
             }
         };
-        let policy = slot.policy.clone();
-        let result = self.step_in(slot, request).await;
+        let result = self.step_in(slot.clone(), request).await;
         match &result {
             Ok(response) => self.metrics.step(
-                &policy.manifest.name,
+                &slot.steps_served,
                 start.elapsed(),
                 response.forecast.len(),
                 response.broke_at.is_some(),
@@ -255,8 +254,13 @@ impl Prac for PracService {
             }
             None => 0,
         };
-        self.state
-            .counted(self.state.sessions.insert(session).map_err(Status::from))?;
+        let steps_served = self.state.metrics.policy_steps(&policy.manifest.name);
+        self.state.counted(
+            self.state
+                .sessions
+                .insert(session, steps_served)
+                .map_err(Status::from),
+        )?;
         self.state.metrics.session_opened();
         tracing::debug!(session = %id, policy = %request.policy, "session opened");
         Ok(Response::new(proto::OpenSessionResponse {

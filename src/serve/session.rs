@@ -431,6 +431,8 @@ pub struct SessionSlot {
     /// The session's policy (also in the session), readable without the lock.
     pub policy: Arc<Policy>,
     pub owner: Option<String>,
+    /// Its policy's step counter in the metrics.
+    pub steps_served: prometheus_client::metrics::counter::Counter,
     session: Mutex<Session>,
     last_used_ms: AtomicU64,
 }
@@ -508,7 +510,11 @@ impl Sessions {
         self.ttl
     }
 
-    pub fn insert(&self, session: Session) -> Result<(), SessionError> {
+    pub fn insert(
+        &self,
+        session: Session,
+        steps_served: prometheus_client::metrics::counter::Counter,
+    ) -> Result<(), SessionError> {
         let mut slots = self.slots();
         if slots.len() >= self.max_sessions {
             return Err(SessionError::CapReached(self.max_sessions));
@@ -519,6 +525,7 @@ impl Sessions {
             Arc::new(SessionSlot {
                 policy: session.policy.clone(),
                 owner: session.owner.clone(),
+                steps_served,
                 session: Mutex::new(session),
                 last_used_ms: AtomicU64::new(self.now_ms()),
             }),

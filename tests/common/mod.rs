@@ -151,3 +151,17 @@ impl Drop for Server {
         let _ = self.child.wait();
     }
 }
+
+/// Opens a session on `policy` with the server's default options; returns its id.
+pub async fn open_default_session(client: &mut PracClient<Channel>, policy: &str) -> String {
+    client
+        .open_session(prac::proto::OpenSessionRequest {
+            policy: policy.into(),
+            options: None,
+            resume: None,
+        })
+        .await
+        .unwrap_or_else(|e| panic!("opening a session on {policy}: {e}"))
+        .into_inner()
+        .session_id
+}
