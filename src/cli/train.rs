@@ -113,20 +113,12 @@ fn apply_overrides(config: &mut SacConfig, a: &TrainArgs) -> anyhow::Result<()> 
 }
 
 fn parse_value_scale(text: &str) -> anyhow::Result<(f64, f64)> {
-    let parts: Vec<&str> = text.split(',').collect();
-    let parsed: Vec<f64> = parts
-        .iter()
-        .map(|p| p.trim().parse::<f64>())
-        .collect::<Result<_, _>>()
-        .map_err(|_| {
-            anyhow::anyhow!("--value-scale takes V_PI,V_RAND (two numbers), got '{text}'")
-        })?;
-    match parsed[..] {
-        [v_pi, v_rand] if v_pi.is_finite() && v_rand.is_finite() && v_pi > v_rand => {
-            Ok((v_pi, v_rand))
-        }
-        _ => anyhow::bail!("--value-scale takes V_PI,V_RAND with V_PI > V_RAND, got '{text}'"),
-    }
+    let (v_pi, v_rand) = super::parse_number_pair(text, "--value-scale V_PI,V_RAND")?;
+    anyhow::ensure!(
+        v_pi > v_rand,
+        "--value-scale takes V_PI,V_RAND with V_PI > V_RAND, got '{text}'"
+    );
+    Ok((v_pi, v_rand))
 }
 
 pub fn train(args: TrainArgs) -> anyhow::Result<()> {

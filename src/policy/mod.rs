@@ -110,10 +110,12 @@ impl Policy {
 
     /// Maps an action from [-1, 1] to the action bounds.
     pub fn unscale_action(&self, squashed: &[f32], out: &mut [f32]) {
-        let (lo, hi) = (&self.manifest.action_low, &self.manifest.action_high);
-        for i in 0..squashed.len() {
-            out[i] = lo[i] + 0.5 * (squashed[i] + 1.0) * (hi[i] - lo[i]);
-        }
+        unscale_action(
+            &self.manifest.action_low,
+            &self.manifest.action_high,
+            squashed,
+            out,
+        );
     }
 
     /// Maps an action from the action bounds to [-1, 1].
@@ -282,6 +284,13 @@ impl Networks for Evaluator {
                 next_obs[k * od + i] = obs[k * od + i] + d;
             }
         }
+    }
+}
+
+/// Maps an action from [-1, 1] to the bounds [low, high] (the policy's or the domain's).
+pub fn unscale_action(low: &[f32], high: &[f32], squashed: &[f32], out: &mut [f32]) {
+    for i in 0..squashed.len() {
+        out[i] = low[i] + 0.5 * (squashed[i] + 1.0) * (high[i] - low[i]);
     }
 }
 

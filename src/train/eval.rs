@@ -8,7 +8,7 @@ use serde::Serialize;
 use crate::bundle::ValueScale;
 use crate::domains::{Env, EnvError};
 use crate::plan::Networks;
-use crate::policy::{Evaluator, Policy};
+use crate::policy::{Evaluator, Policy, unscale_action};
 
 /// One finished episode: its returns and the visited states and actions (actions in [-1, 1]).
 #[derive(Clone, Debug, Default)]
@@ -42,10 +42,7 @@ pub fn run_episode(
     let mut discount = 1.0;
     loop {
         act(&obs, &mut action);
-        for i in 0..ad {
-            let (lo, hi) = (spec.action_low[i], spec.action_high[i]);
-            scaled[i] = lo + 0.5 * (action[i] + 1.0) * (hi - lo);
-        }
+        unscale_action(&spec.action_low, &spec.action_high, &action, &mut scaled);
         let t = env.step(&scaled, &mut obs)?;
         episode.ret += t.reward;
         episode.discounted += discount * t.reward;

@@ -103,15 +103,9 @@ pub fn progress(total: u64, show: bool) -> indicatif::ProgressBar {
 }
 
 fn parse_pair(text: &str) -> anyhow::Result<(f64, f64)> {
-    let v: Vec<f64> = text
-        .split(',')
-        .map(|p| p.trim().parse::<f64>())
-        .collect::<Result<_, _>>()
-        .map_err(|_| anyhow::anyhow!("expected two numbers A,B, got '{text}'"))?;
-    match v[..] {
-        [a, b] if a.is_finite() && b.is_finite() && a != b => Ok((a, b)),
-        _ => anyhow::bail!("expected two different numbers A,B, got '{text}'"),
-    }
+    let (a, b) = prac::cli::parse_number_pair(text, "A,B")?;
+    anyhow::ensure!(a != b, "expected two different numbers A,B, got '{text}'");
+    Ok((a, b))
 }
 
 async fn run(cli: Cli) -> anyhow::Result<()> {
