@@ -78,6 +78,61 @@ pub struct Plan {
     decided_at: Vec<u64>,
 }
 
+/// A committed plan and the buffer its next replan writes into, so a failed replan leaves the
+/// commitment as it was: the bookkeeping the server's sessions, training-with-PrAC and
+/// `prac render` share.
+#[derive(Clone, Debug)]
+pub struct Commitment {
+    plan: Plan,
+    spare: Plan,
+}
+
+impl Commitment {
+    pub fn with_capacity(obs_dim: usize, act_dim: usize, capacity: usize) -> Commitment {
+        Commitment {
+            plan: Plan::with_capacity(obs_dim, act_dim, capacity),
+            spare: Plan::with_capacity(obs_dim, act_dim, capacity),
+        }
+    }
+
+    /// The committed plan: action(0) is the action of the last replanned step.
+    pub fn plan(&self) -> &Plan {
+        &self.plan
+    }
+
+    /// Takes over a plan committed elsewhere (a resumed session).
+    pub fn replace(&mut self, plan: Plan) {
+        self.plan = plan;
+    }
+
+    /// Forgets the commitment (a new episode starts from nothing).
+    pub fn clear(&mut self) {
+        self.plan.clear();
+    }
+
+    /// What the next step's replan checks and where it writes: the commitment after its first
+    /// (executed) action, or nothing when `fresh` (an episode's first step), and the spare plan.
+    pub fn next_replan(&mut self, fresh: bool) -> (PlanView<'_>, &mut Plan) {
+        let old = if fresh || self.plan.is_empty() {
+            PlanView::empty()
+        } else {
+            self.plan.tail(1)
+        };
+        (old, &mut self.spare)
+    }
+
+    /// Makes the plan the last replan wrote the commitment.
+    pub fn commit(&mut self) {
+        std::mem::swap(&mut self.plan, &mut self.spare);
+    }
+
+    /// The paper's forecast `f_t = t + 1 - i` of the committed first action, executed at step
+    /// `t` and decided at step `i`.
+    pub fn forecast(&self, t: u64) -> u64 {
+        t + 1 - self.plan.decided_at(0)
+    }
+}
+
 /// A borrowed run of plan entries (e.g. what is left of the last plan after its first action).
 #[derive(Clone, Copy, Debug)]
 pub struct PlanView<'a> {

@@ -626,3 +626,33 @@ fn chunked_batched_replan_matches_the_plain_algorithm() {
         "model failures part-way were exercised: {errors}"
     );
 }
+
+#[test]
+fn a_commitment_offers_its_tail_and_keeps_its_plan_until_commit() {
+    let mut c = Commitment::with_capacity(1, 1, 4);
+    assert!(c.next_replan(false).0.is_empty(), "nothing committed yet");
+    {
+        let (_, new) = c.next_replan(true);
+        new.push(&[0.1], &[1.0], 3);
+        new.push(&[0.2], &[2.0], 3);
+        new.push(&[0.3], &[3.0], 4);
+    }
+    assert!(
+        c.plan().is_empty(),
+        "a replan is not committed until commit()"
+    );
+    c.commit();
+    assert_eq!(c.plan().len(), 3);
+    // The action executed at step 5 was decided at step 3: f_t = 5 + 1 - 3.
+    assert_eq!(c.forecast(5), 3);
+    let (old, new) = c.next_replan(false);
+    assert_eq!(old.len(), 2, "the executed first action is dropped");
+    assert_eq!((old.action(0), old.decided_at(1)), (&[0.2f32][..], 4));
+    new.clear();
+    assert!(
+        c.next_replan(true).0.is_empty(),
+        "an episode's start ignores the old plan"
+    );
+    c.clear();
+    assert!(c.plan().is_empty());
+}

@@ -11,8 +11,8 @@ use rand_chacha::ChaCha8Rng;
 use tokio::sync::watch;
 
 use crate::plan::{
-    DEFAULT_MAX_HORIZON, Growth, NonFinite, Plan, PlanView, ReplanConfig, ReplanJob, ReplanOutcome,
-    ReplanScratch, replan_batch,
+    Commitment, DEFAULT_MAX_HORIZON, Growth, NonFinite, Plan, ReplanConfig, ReplanJob,
+    ReplanOutcome, ReplanScratch, replan_batch,
 };
 use crate::policy::{Evaluator, Policy};
 use crate::proto;
@@ -152,9 +152,8 @@ pub struct Session {
     pub policy: Arc<Policy>,
     pub settings: SessionSettings,
     rng: ChaCha8Rng,
-    /// The committed plan: plan[0] is the action of step `step`.
-    plan: Plan,
-    spare: Plan,
+    /// The committed plan: its action(0) is the action of step `step`.
+    commitment: Commitment,
     /// Step index of plan[0] within the episode; None before the session's first step.
     step: Option<u64>,
     episode: u64,
@@ -172,8 +171,7 @@ impl Session {
         }));
         Session {
             rng: ChaCha8Rng::seed_from_u64(settings.seed),
-            plan: Plan::with_capacity(obs, act, capacity),
-            spare: Plan::with_capacity(obs, act, capacity),
+            commitment: Commitment::with_capacity(obs, act, capacity),
             step: None,
             episode: 0,
             steps_served: 0,
@@ -251,17 +249,13 @@ impl Session {
         begun: &Begun,
         rng: &'a mut ChaCha8Rng,
     ) -> ReplanJob<'a, ChaCha8Rng> {
-        let old = if begun.fresh {
-            PlanView::empty()
-        } else {
-            self.plan.tail(1)
-        };
+        let (old, new) = self.commitment.next_replan(begun.fresh);
         ReplanJob {
             config: self.settings.replan,
             state: observation,
             step: begun.step,
             old,
-            new: &mut self.spare,
+            new,
             rng,
         }
     }
@@ -269,7 +263,7 @@ impl Session {
     /// Makes the replanned plan the committed one.
     pub fn commit(&mut self, begun: &Begun, outcome: ReplanOutcome, rng: ChaCha8Rng) -> StepReport {
         self.rng = rng;
-        std::mem::swap(&mut self.plan, &mut self.spare);
+        self.commitment.commit();
         if begun.fresh && self.step.is_some() {
             self.episode += 1;
         }
@@ -283,7 +277,7 @@ impl Session {
             outcome,
             step: t,
             episode: self.episode,
-            f_t: t + 1 - self.plan.decided_at(0),
+            f_t: self.commitment.forecast(t),
         }
     }
 
@@ -338,7 +332,7 @@ impl Session {
             resumed.push(&squashed, &vec![f32::NAN; od], entry.decided_at);
         }
         // Keep the spare's capacity for the allocation-free steps that follow.
-        self.plan = resumed;
+        self.commitment.replace(resumed);
         self.step = Some(plan.start_step);
         self.episode = plan.episode;
         Ok(())
@@ -350,19 +344,20 @@ impl Session {
     }
 
     fn planned_actions(&self) -> Vec<proto::PlannedAction> {
-        (0..self.plan.len())
+        let plan = self.commitment.plan();
+        (0..plan.len())
             .map(|j| {
                 let mut action = vec![0.0; self.policy.act_dim()];
-                self.policy.unscale_action(self.plan.action(j), &mut action);
+                self.policy.unscale_action(plan.action(j), &mut action);
                 proto::PlannedAction {
                     action,
                     // Unknown (empty) for a resumed plan until its first replan.
-                    predicted_observation: if self.plan.next_obs(j).iter().all(|v| v.is_finite()) {
-                        self.plan.next_obs(j).to_vec()
+                    predicted_observation: if plan.next_obs(j).iter().all(|v| v.is_finite()) {
+                        plan.next_obs(j).to_vec()
                     } else {
                         Vec::new()
                     },
-                    decided_at: self.plan.decided_at(j),
+                    decided_at: plan.decided_at(j),
                 }
             })
             .collect()

@@ -24,7 +24,7 @@ use crate::bundle::{
 };
 use crate::domains::{self, Env, EnvSpec};
 use crate::nn::Activation;
-use crate::plan::{self, Growth, Networks, Plan, ReplanConfig, ReplanScratch};
+use crate::plan::{self, Commitment, Growth, Networks, ReplanConfig, ReplanScratch};
 use crate::policy::{Evaluator, Policy};
 
 /// Everything `prac train` takes.
@@ -172,8 +172,7 @@ pub fn snapshot(sac: &Sac, model: &ModelTrainer, spec: &EnvSpec, steps: u64, see
 
 /// The PrAC agent while training: the committed plan and its rng.
 struct PlanAgent {
-    plan: Plan,
-    spare: Plan,
+    commitment: Commitment,
     scratch: ReplanScratch,
     rng: ChaCha8Rng,
     epsilon: f32,
@@ -287,8 +286,7 @@ impl Trainer {
         );
         let policy = Arc::new(snapshot(&sac, &model, &spec, progress.step, options.seed));
         let agent = (options.epsilon_coef > 0.0).then(|| PlanAgent {
-            plan: Plan::with_capacity(od, ad, options.max_horizon + 1),
-            spare: Plan::with_capacity(od, ad, options.max_horizon + 1),
+            commitment: Commitment::with_capacity(od, ad, options.max_horizon + 1),
             scratch: ReplanScratch::new(od, ad),
             rng: ChaCha8Rng::seed_from_u64(options.seed.wrapping_add(progress.step) ^ 0x91a7),
             epsilon: 0.0,
@@ -366,27 +364,23 @@ impl Trainer {
                     max_horizon: self.options.max_horizon,
                     sampled: true,
                 };
-                let old = if t == 0 || agent.plan.is_empty() {
-                    plan::PlanView::empty()
-                } else {
-                    agent.plan.tail(1)
-                };
+                let (old, new) = agent.commitment.next_replan(t == 0);
                 let outcome = plan::replan(
                     &mut evaluator,
                     &config,
                     &obs,
                     t,
                     old,
-                    &mut agent.spare,
+                    new,
                     &mut agent.scratch,
                     &mut agent.rng,
                 );
                 match outcome {
-                    Ok(_) => std::mem::swap(&mut agent.plan, &mut agent.spare),
+                    Ok(_) => agent.commitment.commit(),
                     Err(e) => bail!("replan failed at step {}: {e}", self.progress.step),
                 }
-                action.copy_from_slice(agent.plan.action(0));
-                f_t = t + 1 - agent.plan.decided_at(0);
+                action.copy_from_slice(agent.commitment.plan().action(0));
+                f_t = agent.commitment.forecast(t);
             } else {
                 noise
                     .iter_mut()
@@ -520,7 +514,7 @@ impl Trainer {
             }
         };
         agent.epsilon = (coef * range.max(0.0)) as f32;
-        agent.plan.clear();
+        agent.commitment.clear();
     }
 
     fn refresh_policy(&mut self, evaluator: &mut Evaluator) {
