@@ -32,3 +32,13 @@ pub async fn connect(addr: &str) -> anyhow::Result<PracClient<Channel>> {
         .await?;
     Ok(PracClient::new(channel))
 }
+
+/// Step latencies in microseconds: 1 us to 60 s at 3 significant digits.
+pub fn latency_histogram() -> hdrhistogram::Histogram<u64> {
+    hdrhistogram::Histogram::new_with_bounds(1, 60_000_000, 3).expect("valid histogram bounds")
+}
+
+/// Records one latency (at least 1 us; longer than the bounds counts as the maximum).
+pub fn record_latency(histogram: &mut hdrhistogram::Histogram<u64>, latency: std::time::Duration) {
+    histogram.saturating_record((latency.as_micros() as u64).max(1));
+}

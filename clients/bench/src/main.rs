@@ -129,7 +129,7 @@ struct Tally {
 impl Tally {
     fn new() -> Tally {
         Tally {
-            latency: Histogram::new_with_bounds(1, 60_000_000, 3).expect("histogram bounds"),
+            latency: common::latency_histogram(),
             errors: BTreeMap::new(),
             f_t: 0,
             replans: 0,
@@ -141,8 +141,7 @@ impl Tally {
         match result {
             Ok(r) => {
                 self.steps += 1;
-                self.latency
-                    .saturating_record((latency.as_micros() as u64).max(1));
+                common::record_latency(&mut self.latency, latency);
                 self.f_t += r.f_t;
                 self.replans += u64::from(r.broke_at.is_some());
                 self.plan_length += r.forecast.len() as u64;

@@ -88,10 +88,7 @@ struct Shared {
 impl Shared {
     fn good(&self, latency: Duration) {
         self.counts.lock().unwrap().good += 1;
-        self.latency
-            .lock()
-            .unwrap()
-            .saturating_record((latency.as_micros() as u64).max(1));
+        common::record_latency(&mut self.latency.lock().unwrap(), latency);
     }
     fn unexpected(&self, what: &str, status: &tonic::Status) {
         let key = format!("{what}: {:?}", status.code());
@@ -410,7 +407,7 @@ async fn run(args: Args) -> anyhow::Result<Report> {
 
     let shared = Arc::new(Shared {
         counts: Mutex::new(Counts::default()),
-        latency: Mutex::new(Histogram::new_with_bounds(1, 60_000_000, 3)?),
+        latency: Mutex::new(common::latency_histogram()),
     });
     let start = Instant::now();
     let until = start + args.duration;
