@@ -402,3 +402,24 @@ fn joint_torques_add_no_momentum_and_multibody_links_stay_jointed() {
         assert!(gap < 1e-3, "{}: a joint came apart by {gap} m", spec.name);
     }
 }
+
+#[test]
+fn a_3d_trace_integrates_the_predicted_forward_speed() {
+    let mut env = Spatial::humanoid();
+    let mut obs = [0.0f32; 44];
+    env.reset(2, &mut obs).unwrap();
+    // Three predicted states moving forward at 1 m/s (obs[3] = 0.3 vx) at a constant height.
+    let mut predicted = Vec::new();
+    for _ in 0..3 {
+        let mut o = obs;
+        o[3] = 0.3;
+        o[4] = 0.0;
+        predicted.extend_from_slice(&o);
+    }
+    let trace = env.trace(&predicted);
+    assert_eq!(trace.len(), 3);
+    for pair in trace.windows(2) {
+        assert!((pair[1].0 - pair[0].0 - 0.0165).abs() < 1e-5, "{trace:?}");
+        assert!((pair[1].1 - pair[0].1).abs() < 1e-6, "{trace:?}");
+    }
+}
