@@ -15,7 +15,6 @@ use super::scene::{Part, Scene, Shape};
 use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, clip_action, wrap_angle};
 
 const CONTROL_PERIOD: f32 = 0.0165;
-const SUBSTEPS: usize = 4;
 const GRAVITY: f32 = 9.8;
 /// PyBullet's walk target, far ahead on x.
 const TARGET_X: f32 = 1000.0;
@@ -84,6 +83,9 @@ struct RobotDef {
     cost_scale: f64,
     /// Bullet's combined friction of the robot's geoms on the floor.
     friction: f32,
+    /// rapier steps per control period: each recomputes the multibody's mass matrix, the
+    /// costliest part of a step (see docs/domains.md).
+    substeps: usize,
 }
 
 fn v(x: f32, y: f32, z: f32) -> Vector {
@@ -184,6 +186,7 @@ fn ant() -> RobotDef {
         initial_z: None,
         cost_scale: 1.0,
         friction: 1.5 * FLOOR_FRICTION,
+        substeps: 1,
     }
 }
 
@@ -358,6 +361,7 @@ fn humanoid() -> RobotDef {
         initial_z: Some(0.8),
         cost_scale: 4.25,
         friction: 0.8 * FLOOR_FRICTION,
+        substeps: 4,
     }
 }
 
@@ -432,7 +436,7 @@ impl Spatial {
             gravity: v(0.0, 0.0, -GRAVITY),
             ..Default::default()
         };
-        world.integration_parameters.dt = CONTROL_PERIOD / SUBSTEPS as f32;
+        world.integration_parameters.dt = CONTROL_PERIOD / self.robot.substeps as f32;
         // The robot touches only the floor (no self-collision; see docs/domains.md).
         let robot_group =
             InteractionGroups::new(Group::GROUP_1, Group::GROUP_2, InteractionTestMode::And);
@@ -745,7 +749,7 @@ impl Env for Spatial {
             self.world.bodies[child].add_torque(tau, true);
             self.world.bodies[parent].add_torque(-tau, true);
         }
-        for _ in 0..SUBSTEPS {
+        for _ in 0..self.robot.substeps {
             self.world.step();
         }
         for &body in &self.bodies {
