@@ -8,6 +8,7 @@ mod pendulum;
 mod planar;
 pub mod scene;
 mod spatial;
+mod walker_base;
 
 pub use lander::Lander;
 pub use pendulum::Pendulum;

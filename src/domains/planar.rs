@@ -6,20 +6,13 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rapier2d::prelude::*;
 
+use super::walker_base::{
+    self, CONTROL_PERIOD, DENSITY, GRAVITY, MORE, TARGET_X, clip_observation, effort_costs,
+};
 use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, clip_action, wrap_angle};
 
-const CONTROL_PERIOD: f32 = 0.0165;
 const SUBSTEPS: usize = 4;
-const GRAVITY: f32 = 9.8;
 const FLOOR_FRICTION: f32 = 0.64;
-/// PyBullet's walk target, far ahead on x.
-const TARGET_X: f32 = 1000.0;
-const ELECTRICITY_COST: f64 = -2.0;
-const STALL_TORQUE_COST: f64 = -0.1;
-const JOINTS_AT_LIMIT_COST: f64 = -0.1;
-/// MuJoCo's default density; masses are those of the 3D capsules (a 2D shape's area would give
-/// other masses).
-const DENSITY: f32 = 1000.0;
 
 /// A capsule, endpoints at rest in world (x, z).
 struct Capsule {
@@ -29,7 +22,8 @@ struct Capsule {
 }
 
 impl Capsule {
-    /// The mass of the 3D capsule, as MuJoCo computes it.
+    /// The mass of the 3D capsule, as MuJoCo computes it (a 2D shape's area would give other
+    /// masses).
     fn mass(&self) -> f32 {
         use std::f32::consts::PI;
         let length = ((self.b.0 - self.a.0).powi(2) + (self.b.1 - self.a.1).powi(2)).sqrt();
@@ -403,8 +397,7 @@ impl Planar {
 
     /// PyBullet's potential: minus the distance to the target per control period.
     fn potential(&self) -> f64 {
-        let x = self.torso().translation().x;
-        -f64::from((TARGET_X - x).abs()) / f64::from(CONTROL_PERIOD)
+        walker_base::potential((TARGET_X - self.torso().translation().x).abs())
     }
 
     fn read_joints(&mut self) {
@@ -416,10 +409,11 @@ impl Planar {
                     child.rotation().angle() - parent.rotation().angle(),
                 )) as f32;
             let qdot = joint.axis * (child.angvel() - parent.angvel());
-            let (lo, hi) = joint.range;
-            let mid = 0.5 * (lo + hi);
-            self.joint_state[2 * k] = 2.0 * (q - mid) / (hi - lo);
-            self.joint_state[2 * k + 1] = 0.1 * qdot;
+            self.joint_state[2 * k..2 * k + 2].copy_from_slice(&walker_base::joint_state(
+                q,
+                qdot,
+                joint.range,
+            ));
         }
     }
 
@@ -441,19 +435,17 @@ impl Planar {
             0.0,
             pitch,
         ];
-        obs[..8].copy_from_slice(&more);
-        obs[8..8 + self.joint_state.len()].copy_from_slice(&self.joint_state);
+        obs[..MORE].copy_from_slice(&more);
+        obs[MORE..MORE + self.joint_state.len()].copy_from_slice(&self.joint_state);
         for (k, &foot) in self.robot.feet.iter().enumerate() {
             let touching = self.colliders[foot].iter().any(|&c| {
                 self.world
                     .contact_pair(c, self.ground)
                     .is_some_and(|pair| pair.has_any_active_contact())
             });
-            obs[8 + self.joint_state.len() + k] = f32::from(u8::from(touching));
+            obs[MORE + self.joint_state.len() + k] = f32::from(u8::from(touching));
         }
-        for v in obs.iter_mut() {
-            *v = v.clamp(-5.0, 5.0);
-        }
+        clip_observation(obs);
         (pos.y, pitch)
     }
 }
@@ -528,7 +520,7 @@ impl Env for Planar {
             self.world.bodies[body].reset_forces(false);
         }
         let (z, pitch) = self.observe(obs);
-        let contacts = &obs[8 + self.joint_state.len()..];
+        let contacts = &obs[MORE + self.joint_state.len()..];
         let (alive, ends) = match &self.robot.alive {
             Alive::Upright { min_z } => (*min_z < z && pitch.abs() < 1.0, true),
             Alive::NoContact { forbidden } => (
@@ -540,22 +532,7 @@ impl Env for Planar {
         let old_potential = self.potential;
         self.potential = self.potential();
         let progress = self.potential - old_potential;
-        let n = a.len() as f64;
-        let speeds = self.joint_state.iter().skip(1).step_by(2);
-        let electricity = ELECTRICITY_COST
-            * a.iter()
-                .zip(speeds)
-                .map(|(u, s)| f64::from((u * s).abs()))
-                .sum::<f64>()
-            / n
-            + STALL_TORQUE_COST * a.iter().map(|u| f64::from(u * u)).sum::<f64>() / n;
-        let at_limit = self
-            .joint_state
-            .iter()
-            .step_by(2)
-            .filter(|q| q.abs() > 0.99)
-            .count() as f64;
-        let reward = alive + progress + electricity + JOINTS_AT_LIMIT_COST * at_limit;
+        let reward = alive + progress + effort_costs(&a, &self.joint_state, 1.0);
         self.steps += 1;
         let terminated = ends && alive < 0.0;
         let truncated = !terminated && self.steps >= self.spec.episode_len;

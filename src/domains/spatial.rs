@@ -12,21 +12,16 @@ use rapier3d::glamx::EulerRot;
 use rapier3d::prelude::*;
 
 use super::scene::{Part, Scene, Shape};
+use super::walker_base::{
+    self, CONTROL_PERIOD, DENSITY, GRAVITY, MORE, TARGET_X, clip_observation, effort_costs,
+};
 use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, clip_action, wrap_angle};
 
-const CONTROL_PERIOD: f32 = 0.0165;
-const GRAVITY: f32 = 9.8;
-/// PyBullet's walk target, far ahead on x.
-const TARGET_X: f32 = 1000.0;
-/// PyBullet's MJCF importer ignores `density` and gives every geom 1000 kg/m^3.
-const DENSITY: f32 = 1000.0;
 /// PyBullet's stadium floor friction (0.8), multiplied by the geom's as Bullet combines them.
 const FLOOR_FRICTION: f32 = 0.8;
 /// Links that only chain several hinges of one MuJoCo body: no shape, a token mass so the link
 /// has a well-defined inertia.
 const CHAIN_LINK_MASS: f32 = 0.01;
-/// Joint angles and speeds, then feet contacts, after the 8 "more" values.
-const MORE: usize = 8;
 
 #[derive(Clone, Copy)]
 enum Geom {
@@ -383,11 +378,6 @@ pub struct Spatial {
     action: Vec<f32>,
 }
 
-/// PyBullet's electricity and stall costs (per mean over joints) and the joint-limit cost.
-const ELECTRICITY_COST: f64 = -2.0;
-const STALL_TORQUE_COST: f64 = -0.1;
-const JOINTS_AT_LIMIT_COST: f64 = -0.1;
-
 impl Spatial {
     pub fn ant() -> Spatial {
         Spatial::new(ant())
@@ -557,8 +547,7 @@ impl Spatial {
     /// PyBullet's potential: minus the distance to the target per control period.
     fn potential(&self) -> f64 {
         let p = self.body_xyz();
-        let distance = (TARGET_X - p.x).hypot(p.y);
-        -f64::from(distance) / f64::from(CONTROL_PERIOD)
+        walker_base::potential((TARGET_X - p.x).hypot(p.y))
     }
 
     fn read_joints(&mut self) {
@@ -572,10 +561,8 @@ impl Spatial {
             let q = wrap_angle(f64::from(2.0 * along.atan2(relative.w))) as f32;
             let world_axis = *child.rotation() * link.axis;
             let qdot = (child.angvel() - parent.angvel()).dot(world_axis);
-            let (lo, hi) = link.range;
-            let mid = 0.5 * (lo + hi);
-            self.joint_state[2 * (k - 1)] = 2.0 * (q - mid) / (hi - lo);
-            self.joint_state[2 * (k - 1) + 1] = 0.1 * qdot;
+            self.joint_state[2 * (k - 1)..2 * k]
+                .copy_from_slice(&walker_base::joint_state(q, qdot, link.range));
         }
     }
 
@@ -612,9 +599,7 @@ impl Spatial {
         for (k, &foot) in self.robot.feet.iter().enumerate() {
             obs[MORE + joints + k] = f32::from(u8::from(self.touching(foot)));
         }
-        for x in obs.iter_mut() {
-            *x = x.clamp(-5.0, 5.0);
-        }
+        clip_observation(obs);
         (p.z, pitch)
     }
 }
@@ -764,23 +749,7 @@ impl Env for Spatial {
         let old_potential = self.potential;
         self.potential = self.potential();
         let progress = self.potential - old_potential;
-        let n = a.len() as f64;
-        let speeds = self.joint_state.iter().skip(1).step_by(2);
-        let electricity = self.robot.cost_scale
-            * (ELECTRICITY_COST
-                * a.iter()
-                    .zip(speeds)
-                    .map(|(u, s)| f64::from((u * s).abs()))
-                    .sum::<f64>()
-                / n
-                + STALL_TORQUE_COST * a.iter().map(|u| f64::from(u * u)).sum::<f64>() / n);
-        let at_limit = self
-            .joint_state
-            .iter()
-            .step_by(2)
-            .filter(|q| q.abs() > 0.99)
-            .count() as f64;
-        let reward = alive + progress + electricity + JOINTS_AT_LIMIT_COST * at_limit;
+        let reward = alive + progress + effort_costs(&a, &self.joint_state, self.robot.cost_scale);
         self.action = a;
         self.steps += 1;
         let terminated = alive < 0.0;

@@ -1,0 +1,86 @@
+//! PyBullet's WalkerBase task interface, shared by the planar (rapier2d) and 3D (rapier3d)
+//! walkers: the constants, the potential, the normalised joint state, the observation clip and
+//! the effort costs of the reward.
+
+pub const CONTROL_PERIOD: f32 = 0.0165;
+pub const GRAVITY: f32 = 9.8;
+/// PyBullet's walk target, far ahead on x.
+pub const TARGET_X: f32 = 1000.0;
+/// MuJoCo's default density, which PyBullet's MJCF importer gives every geom.
+pub const DENSITY: f32 = 1000.0;
+/// Joint angles and speeds, then feet contacts, follow these 8 "more" values.
+pub const MORE: usize = 8;
+
+const ELECTRICITY_COST: f64 = -2.0;
+const STALL_TORQUE_COST: f64 = -0.1;
+const JOINTS_AT_LIMIT_COST: f64 = -0.1;
+/// PyBullet clips every observation value to this magnitude.
+const OBSERVATION_CLIP: f32 = 5.0;
+
+/// PyBullet's potential: minus the distance to the target per control period.
+pub fn potential(distance_to_target: f32) -> f64 {
+    -f64::from(distance_to_target) / f64::from(CONTROL_PERIOD)
+}
+
+/// PyBullet's joint state: the angle mapped to [-1, 1] over its range, and 0.1 x the speed.
+pub fn joint_state(q: f32, qdot: f32, (lo, hi): (f32, f32)) -> [f32; 2] {
+    let mid = 0.5 * (lo + hi);
+    [2.0 * (q - mid) / (hi - lo), 0.1 * qdot]
+}
+
+pub fn clip_observation(obs: &mut [f32]) {
+    for x in obs.iter_mut() {
+        *x = x.clamp(-OBSERVATION_CLIP, OBSERVATION_CLIP);
+    }
+}
+
+/// The reward's cost terms: electricity and stall (means over joints, times `cost_scale`, 4.25
+/// for PyBullet's Humanoid) and the joints-at-limit count. `joint_state` interleaves angles and
+/// speeds as [`joint_state`] gives them.
+pub fn effort_costs(action: &[f32], joint_state: &[f32], cost_scale: f64) -> f64 {
+    let n = action.len() as f64;
+    let speeds = joint_state.iter().skip(1).step_by(2);
+    let electricity = ELECTRICITY_COST
+        * action
+            .iter()
+            .zip(speeds)
+            .map(|(u, s)| f64::from((u * s).abs()))
+            .sum::<f64>()
+        / n;
+    let stall = STALL_TORQUE_COST * action.iter().map(|u| f64::from(u * u)).sum::<f64>() / n;
+    let at_limit = joint_state
+        .iter()
+        .step_by(2)
+        .filter(|q| q.abs() > 0.99)
+        .count() as f64;
+    cost_scale * (electricity + stall) + JOINTS_AT_LIMIT_COST * at_limit
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn effort_costs_follow_pybullets_formula() {
+        // Two joints: the first at its upper limit moving at 10 rad/s (state 1.0), the second
+        // at rest mid-range.
+        let state = [1.0, 1.0, 0.0, 0.0];
+        let action = [0.5, -1.0];
+        // electricity -2 x mean(|0.5 x 1|, |-1 x 0|) = -0.5; stall -0.1 x mean(0.25, 1) =
+        // -0.0625; one joint at its limit: -0.1.
+        let costs = effort_costs(&action, &state, 1.0);
+        assert!((costs - (-0.5 - 0.0625 - 0.1)).abs() < 1e-12, "{costs}");
+        let scaled = effort_costs(&action, &state, 4.25);
+        assert!(
+            (scaled - (4.25 * (-0.5 - 0.0625) - 0.1)).abs() < 1e-12,
+            "{scaled}"
+        );
+    }
+
+    #[test]
+    fn joint_state_maps_the_range_to_plus_minus_one() {
+        assert_eq!(joint_state(-0.5, 3.0, (-0.5, 1.5)), [-1.0, 0.3]);
+        assert_eq!(joint_state(1.5, 0.0, (-0.5, 1.5)), [1.0, 0.0]);
+        assert_eq!(joint_state(0.5, 0.0, (-0.5, 1.5)), [0.0, 0.0]);
+    }
+}
