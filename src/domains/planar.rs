@@ -13,6 +13,8 @@ use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, clip_action, wrap
 
 const SUBSTEPS: usize = 4;
 const FLOOR_FRICTION: f32 = 0.64;
+/// btMultiBody's default linear and angular damping, which PyBullet keeps.
+const BULLET_DRAG: f32 = 0.04;
 
 /// A capsule, endpoints at rest in world (x, z).
 struct Capsule {
@@ -315,33 +317,19 @@ impl Planar {
                 .friction(FLOOR_FRICTION)
                 .collision_groups(ground_group),
         );
-        // Forward kinematics from the torso: each link turned by its joint about its anchor.
+        // The links at rest; the joint angles are applied through the multibody below.
         let origins: Vec<Vector> = self
             .robot
             .links
             .iter()
             .map(|l| Vector::new(l.origin.0, l.origin.1))
             .collect();
-        let mut poses: Vec<(f32, Vector)> = vec![(0.0, origins[0]); self.robot.links.len()];
-        for (joint, &q) in self.robot.joints.iter().zip(angles) {
-            let (parent_angle, parent_pos) = poses[joint.parent];
-            let anchor = Vector::new(joint.anchor.0, joint.anchor.1);
-            let anchor_world = parent_pos + rotate(anchor - origins[joint.parent], parent_angle);
-            let angle = parent_angle + joint.axis * q;
-            poses[joint.child] = (
-                angle,
-                anchor_world + rotate(origins[joint.child] - anchor, angle),
-            );
-        }
         let mut bodies = Vec::new();
         let mut colliders = Vec::new();
-        for (link, (&(angle, pos), origin)) in
-            self.robot.links.iter().zip(poses.iter().zip(&origins))
-        {
+        for (link, origin) in self.robot.links.iter().zip(&origins) {
             let body = world.insert_body(
                 RigidBodyBuilder::dynamic()
-                    .translation(pos)
-                    .rotation(angle)
+                    .translation(*origin)
                     .can_sleep(false),
             );
             let mut handles = Vec::new();
@@ -361,21 +349,50 @@ impl Planar {
             bodies.push(body);
             colliders.push(handles);
         }
+        // One multibody (reduced coordinates, like PyBullet's btMultiBody): the joints cannot
+        // come apart under large torques, which impulse joints let happen.
+        let mut limits = Vec::new();
+        let mut first_joint = None;
         for joint in &self.robot.joints {
             let anchor = Vector::new(joint.anchor.0, joint.anchor.1);
             // Limits in the plane's counter-clockwise convention.
             let (lo, hi) = joint.range;
-            let limits = if joint.axis > 0.0 {
+            let range = if joint.axis > 0.0 {
                 [lo, hi]
             } else {
                 [-hi, -lo]
             };
+            limits.push(range);
             let hinge = RevoluteJointBuilder::new()
                 .local_anchor1(anchor - origins[joint.parent])
                 .local_anchor2(anchor - origins[joint.child])
-                .limits(limits)
+                .limits(range)
                 .contacts_enabled(false);
-            world.insert_impulse_joint(bodies[joint.parent], bodies[joint.child], hinge);
+            let handle = world
+                .insert_multibody_joint(bodies[joint.parent], bodies[joint.child], hinge)
+                .expect("the robot is a tree");
+            first_joint.get_or_insert(handle);
+        }
+        // No default damping (PyBullet has none); the reset angles, clamped to the limits as
+        // Bullet's limit would in the first step.
+        if let Some(first) = first_joint {
+            let (multibody, _) = world
+                .multibody_joints
+                .get_mut(first)
+                .expect("the joint was just inserted");
+            multibody.forward_kinematics(&world.bodies, true);
+            multibody.damping_mut().fill(0.0);
+            let mut displacement = vec![0.0; multibody.ndofs()];
+            for ((joint, &q), range) in self.robot.joints.iter().zip(angles).zip(&limits) {
+                let dof = multibody
+                    .link(joint.child)
+                    .expect("links are numbered in insertion order")
+                    .assembly_id();
+                displacement[dof] = (joint.axis * q).clamp(range[0], range[1]);
+            }
+            multibody.apply_displacements(&displacement);
+            multibody.forward_kinematics(&world.bodies, true);
+            multibody.update_rigid_bodies(&mut world.bodies, true);
         }
         self.world = world;
         self.ground = ground;
@@ -417,6 +434,28 @@ impl Planar {
         }
     }
 
+    /// Joint torques as equal and opposite torques on child and parent (no spurious momentum),
+    /// and Bullet's default multibody drag on every link: force -m v (k + k |v|) and torque
+    /// -I w (k + k |w|), k = 0.04 (btMultiBody's linear and angular damping).
+    fn apply_forces(&mut self, action: &[f32]) {
+        for &body in &self.bodies {
+            let body = &mut self.world.bodies[body];
+            body.reset_forces(false);
+            body.reset_torques(false);
+            let (v, w) = (body.linvel(), body.angvel());
+            let inertia = body.mass_properties().local_mprops.principal_inertia();
+            let drag = -body.mass() * v * BULLET_DRAG * (1.0 + v.length());
+            let spin_drag = -inertia * w * BULLET_DRAG * (1.0 + w.abs());
+            body.add_force(drag, true);
+            body.add_torque(spin_drag, true);
+        }
+        for (joint, &u) in self.robot.joints.iter().zip(action) {
+            let tau = joint.axis * joint.torque * u;
+            self.world.bodies[self.bodies[joint.child]].add_torque(tau, true);
+            self.world.bodies[self.bodies[joint.parent]].add_torque(-tau, true);
+        }
+    }
+
     /// PyBullet's calc_state, written into obs; returns (torso z, pitch).
     fn observe(&mut self, obs: &mut [f32]) -> (f32, f32) {
         self.read_joints();
@@ -448,11 +487,6 @@ impl Planar {
         clip_observation(obs);
         (pos.y, pitch)
     }
-}
-
-fn rotate(v: Vector, angle: f32) -> Vector {
-    let (s, c) = angle.sin_cos();
-    Vector::new(c * v.x - s * v.y, s * v.x + c * v.y)
 }
 
 impl Env for Planar {
@@ -507,17 +541,9 @@ impl Env for Planar {
         if self.over {
             return Err(EnvError::EpisodeOver);
         }
-        // Joint torques as equal and opposite torques on child and parent: no spurious momentum.
-        for (joint, &u) in self.robot.joints.iter().zip(&a) {
-            let tau = joint.axis * joint.torque * u;
-            self.world.bodies[self.bodies[joint.child]].add_torque(tau, true);
-            self.world.bodies[self.bodies[joint.parent]].add_torque(-tau, true);
-        }
         for _ in 0..SUBSTEPS {
+            self.apply_forces(&a);
             self.world.step();
-        }
-        for &body in &self.bodies {
-            self.world.bodies[body].reset_forces(false);
         }
         let (z, pitch) = self.observe(obs);
         let contacts = &obs[MORE + self.joint_state.len()..];
