@@ -78,6 +78,17 @@ async fn metrics_count_steps_sessions_and_errors() {
         })
         .await
         .unwrap_err();
+    // OpenSession's refusals are counted too: an unknown policy and an empty resumed plan.
+    for (policy, resume) in [("nope", None), ("toy", Some(proto::Plan::default()))] {
+        client
+            .open_session(proto::OpenSessionRequest {
+                policy: policy.into(),
+                options: None,
+                resume,
+            })
+            .await
+            .unwrap_err();
+    }
 
     let text = scrape(&addr);
     assert_eq!(sample(&text, "prac_steps_total{policy=\"toy\"}"), 5.0);
@@ -92,8 +103,8 @@ async fn metrics_count_steps_sessions_and_errors() {
     assert_eq!(sample(&text, "prac_sessions_opened_total"), 2.0);
     assert_eq!(
         sample(&text, "prac_errors_total{code=\"InvalidArgument\"}"),
-        2.0
+        3.0
     );
-    assert_eq!(sample(&text, "prac_errors_total{code=\"NotFound\"}"), 1.0);
+    assert_eq!(sample(&text, "prac_errors_total{code=\"NotFound\"}"), 2.0);
     assert_eq!(sample(&text, "prac_session_evictions_total"), 0.0);
 }

@@ -111,9 +111,65 @@ impl ServerState {
         super::auth::caller(self.auth.as_ref(), metadata).inspect_err(|s| self.metrics.error(s))
     }
 
-    /// Counts a handler's error in the metrics.
+    /// Counts a handler's error in the metrics: each RPC's handler goes through it once (steps
+    /// through `step`, authentication through `caller`).
     fn counted<T>(&self, result: Result<T, Status>) -> Result<T, Status> {
         result.inspect_err(|s| self.metrics.error(s))
+    }
+
+    /// Opens a session for `owner`; errors are counted by the caller.
+    fn open_session(
+        &self,
+        owner: Option<String>,
+        request: proto::OpenSessionRequest,
+    ) -> Result<proto::OpenSessionResponse, Status> {
+        let registry = self.registry()?;
+        let Some(policy) = registry.get(&request.policy) else {
+            return Err(Status::not_found(format!(
+                "unknown policy '{}'; this server has: {}",
+                request.policy.chars().take(64).collect::<String>(),
+                registry.names().join(", ")
+            )));
+        };
+        let settings =
+            SessionSettings::resolve(request.options.as_ref(), policy, self.max_horizon_limit)
+                .map_err(|e| Status::invalid_argument(format!("bad session options: {e}")))?;
+        let largest = largest_response_bytes(
+            settings.replan.max_horizon,
+            policy.obs_dim(),
+            policy.act_dim(),
+        );
+        if largest > self.max_message_bytes {
+            return Err(Status::invalid_argument(format!(
+                "bad session options: a plan of max_horizon {} may need {largest} bytes per \
+                 response, over the server's max message size of {} bytes; lower max_horizon",
+                settings.replan.max_horizon, self.max_message_bytes
+            )));
+        }
+        let id = new_session_id();
+        let mut session = Session::new(id.clone(), policy.clone(), settings);
+        session.owner = owner;
+        let resumed_actions = match &request.resume {
+            Some(plan) => {
+                session
+                    .resume(plan)
+                    .map_err(|e| Status::invalid_argument(format!("cannot resume: {e}")))?;
+                plan.actions.len() as u32
+            }
+            None => 0,
+        };
+        let steps_served = self.metrics.policy_steps(&policy.manifest.name);
+        self.sessions
+            .insert(session, steps_served)
+            .map_err(Status::from)?;
+        self.metrics.session_opened();
+        tracing::debug!(session = %id, policy = %request.policy, "session opened");
+        Ok(proto::OpenSessionResponse {
+            session_id: id,
+            policy: Some(policy_info(&request.policy, policy)),
+            options: Some(settings.to_proto()),
+            resumed_actions,
+        })
     }
 
     /// One step, counted in the metrics (latency, forecast length, plan breaks, errors).
@@ -211,64 +267,9 @@ impl Prac for PracService {
         request: Request<proto::OpenSessionRequest>,
     ) -> Result<Response<proto::OpenSessionResponse>, Status> {
         let owner = self.state.caller(request.metadata())?;
-        let request = request.into_inner();
-        let registry = self.state.counted(self.state.registry())?;
-        let Some(policy) = registry.get(&request.policy) else {
-            return self.state.counted(Err(Status::not_found(format!(
-                "unknown policy '{}'; this server has: {}",
-                request.policy.chars().take(64).collect::<String>(),
-                registry.names().join(", ")
-            ))));
-        };
-        let settings = self.state.counted(
-            SessionSettings::resolve(
-                request.options.as_ref(),
-                policy,
-                self.state.max_horizon_limit,
-            )
-            .map_err(|e| Status::invalid_argument(format!("bad session options: {e}"))),
-        )?;
-        let largest = largest_response_bytes(
-            settings.replan.max_horizon,
-            policy.obs_dim(),
-            policy.act_dim(),
-        );
-        if largest > self.state.max_message_bytes {
-            return self.state.counted(Err(Status::invalid_argument(format!(
-                "bad session options: a plan of max_horizon {} may need {largest} bytes per \
-                 response, over the server's max message size of {} bytes; lower max_horizon",
-                settings.replan.max_horizon, self.state.max_message_bytes
-            ))));
-        }
-        let id = new_session_id();
-        let mut session = Session::new(id.clone(), policy.clone(), settings);
-        session.owner = owner;
-        let resumed_actions = match &request.resume {
-            Some(plan) => {
-                self.state.counted(
-                    session
-                        .resume(plan)
-                        .map_err(|e| Status::invalid_argument(format!("cannot resume: {e}"))),
-                )?;
-                plan.actions.len() as u32
-            }
-            None => 0,
-        };
-        let steps_served = self.state.metrics.policy_steps(&policy.manifest.name);
-        self.state.counted(
-            self.state
-                .sessions
-                .insert(session, steps_served)
-                .map_err(Status::from),
-        )?;
-        self.state.metrics.session_opened();
-        tracing::debug!(session = %id, policy = %request.policy, "session opened");
-        Ok(Response::new(proto::OpenSessionResponse {
-            session_id: id,
-            policy: Some(policy_info(&request.policy, policy)),
-            options: Some(settings.to_proto()),
-            resumed_actions,
-        }))
+        self.state
+            .counted(self.state.open_session(owner, request.into_inner()))
+            .map(Response::new)
     }
 
     async fn close_session(
