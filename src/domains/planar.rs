@@ -7,14 +7,13 @@ use rand_chacha::ChaCha8Rng;
 use rapier2d::prelude::*;
 
 use super::walker_base::{
-    self, CONTROL_PERIOD, DENSITY, GRAVITY, MORE, TARGET_X, clip_observation, effort_costs,
+    self, CONTROL_PERIOD, DENSITY, GRAVITY, MORE, TARGET_X, bullet_drag, clip_observation,
+    effort_costs,
 };
 use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, clip_action, wrap_angle};
 
 const SUBSTEPS: usize = 4;
 const FLOOR_FRICTION: f32 = 0.64;
-/// btMultiBody's default linear and angular damping, which PyBullet keeps.
-const BULLET_DRAG: f32 = 0.04;
 
 /// A capsule, endpoints at rest in world (x, z).
 struct Capsule {
@@ -435,8 +434,7 @@ impl Planar {
     }
 
     /// Joint torques as equal and opposite torques on child and parent (no spurious momentum),
-    /// and Bullet's default multibody drag on every link: force -m v (k + k |v|) and torque
-    /// -I w (k + k |w|), k = 0.04 (btMultiBody's linear and angular damping).
+    /// and Bullet's default multibody drag on every link.
     fn apply_forces(&mut self, action: &[f32]) {
         for &body in &self.bodies {
             let body = &mut self.world.bodies[body];
@@ -444,8 +442,8 @@ impl Planar {
             body.reset_torques(false);
             let (v, w) = (body.linvel(), body.angvel());
             let inertia = body.mass_properties().local_mprops.principal_inertia();
-            let drag = -body.mass() * v * BULLET_DRAG * (1.0 + v.length());
-            let spin_drag = -inertia * w * BULLET_DRAG * (1.0 + w.abs());
+            let drag = -body.mass() * v * bullet_drag(v.length());
+            let spin_drag = -inertia * w * bullet_drag(w.abs());
             body.add_force(drag, true);
             body.add_torque(spin_drag, true);
         }
@@ -568,5 +566,20 @@ impl Env for Planar {
             terminated,
             truncated,
         })
+    }
+}
+
+#[cfg(test)]
+impl Planar {
+    /// Takes the floor away and lets the robot fall for `seconds` without torques; returns the
+    /// torso's vertical speed.
+    pub(super) fn drop_for_test(&mut self, seconds: f32) -> f32 {
+        self.world.remove_collider(self.ground);
+        let zero = vec![0.0; self.spec.act_dim];
+        for _ in 0..(seconds / CONTROL_PERIOD) as usize * SUBSTEPS {
+            self.apply_forces(&zero);
+            self.world.step();
+        }
+        self.torso().linvel().y
     }
 }

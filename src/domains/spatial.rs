@@ -13,7 +13,8 @@ use rapier3d::prelude::*;
 
 use super::scene::{Part, Scene, Shape};
 use super::walker_base::{
-    self, CONTROL_PERIOD, DENSITY, GRAVITY, MORE, TARGET_X, clip_observation, effort_costs,
+    self, CONTROL_PERIOD, DENSITY, GRAVITY, MORE, TARGET_X, bullet_drag, clip_observation,
+    effort_costs,
 };
 use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, clip_action, wrap_angle};
 
@@ -376,6 +377,8 @@ pub struct Spatial {
     /// Joint positions (normalised) and speeds (x 0.1), PyBullet's `j`.
     joint_state: Vec<f32>,
     action: Vec<f32>,
+    /// btMultiBody's drag on the links; off only for the free-floating momentum test.
+    drag: bool,
 }
 
 impl Spatial {
@@ -415,6 +418,7 @@ impl Spatial {
             over: true,
             joint_state: vec![0.0; 2 * n],
             action: vec![0.0; n],
+            drag: true,
         };
         env.build(&vec![0.0; n]);
         env
@@ -574,6 +578,34 @@ impl Spatial {
         })
     }
 
+    /// Joint torques as equal and opposite torques on child and parent (no spurious momentum),
+    /// and Bullet's default multibody drag on every link (unless floating freely for a test).
+    fn apply_forces(&mut self, action: &[f32]) {
+        for &body in &self.bodies {
+            let body = &mut self.world.bodies[body];
+            body.reset_forces(false);
+            body.reset_torques(false);
+            if self.drag {
+                let (v, w) = (body.linvel(), body.angvel());
+                let local = &body.mass_properties().local_mprops;
+                let frame = *body.rotation() * local.principal_inertia_local_frame;
+                let spin = frame * (local.principal_inertia() * (frame.inverse() * w));
+                let force = -body.mass() * v * bullet_drag(v.length());
+                let torque = -spin * bullet_drag(w.length());
+                body.add_force(force, true);
+                body.add_torque(torque, true);
+            }
+        }
+        for (k, link) in self.robot.links.iter().enumerate().skip(1) {
+            let parent = self.bodies[link.parent.unwrap_or(0)];
+            let child = self.bodies[k];
+            let world_axis = *self.world.bodies[child].rotation() * link.axis;
+            let tau = world_axis * (link.torque * action[k - 1]);
+            self.world.bodies[child].add_torque(tau, true);
+            self.world.bodies[parent].add_torque(-tau, true);
+        }
+    }
+
     /// PyBullet's calc_state, written into obs; returns (torso z, pitch).
     fn observe(&mut self, obs: &mut [f32]) -> (f32, f32) {
         self.read_joints();
@@ -725,20 +757,9 @@ impl Env for Spatial {
             self.action = a;
             return Err(EnvError::EpisodeOver);
         }
-        // Joint torques as equal and opposite torques on child and parent: no spurious momentum.
-        for (k, link) in self.robot.links.iter().enumerate().skip(1) {
-            let parent = self.bodies[link.parent.unwrap_or(0)];
-            let child = self.bodies[k];
-            let world_axis = *self.world.bodies[child].rotation() * link.axis;
-            let tau = world_axis * (link.torque * a[k - 1]);
-            self.world.bodies[child].add_torque(tau, true);
-            self.world.bodies[parent].add_torque(-tau, true);
-        }
         for _ in 0..self.robot.substeps {
+            self.apply_forces(&a);
             self.world.step();
-        }
-        for &body in &self.bodies {
-            self.world.bodies[body].reset_torques(false);
         }
         let (z, _pitch) = self.observe(obs);
         let alive = if z > self.robot.alive.min_z {
@@ -765,12 +786,24 @@ impl Env for Spatial {
 
 #[cfg(test)]
 impl Spatial {
-    /// Changes gravity and, with none, takes the floor away: a free-floating robot.
-    pub(super) fn set_gravity_for_test(&mut self, g: f32) {
-        self.world.gravity = v(0.0, 0.0, -g);
-        if g == 0.0 {
-            self.world.remove_collider(self.ground);
+    /// Takes the floor away and lets the robot fall for `seconds` without torques; returns the
+    /// torso's vertical speed.
+    pub(super) fn drop_for_test(&mut self, seconds: f32) -> f32 {
+        self.world.remove_collider(self.ground);
+        let zero = vec![0.0; self.spec.act_dim];
+        let steps = (seconds / CONTROL_PERIOD) as usize * self.robot.substeps;
+        for _ in 0..steps {
+            self.apply_forces(&zero);
+            self.world.step();
         }
+        self.torso().linvel().z
+    }
+
+    /// No gravity, floor or drag: nothing outside the robot acts on it.
+    pub(super) fn float_freely_for_test(&mut self) {
+        self.world.gravity = Vector::ZERO;
+        self.world.remove_collider(self.ground);
+        self.drag = false;
     }
 
     /// The sum of |torque| over the joints for one step of `action`, times the control period.

@@ -319,6 +319,27 @@ fn a_random_cheetah_stays_on_its_feet_at_a_walking_pace() {
 }
 
 #[test]
+fn falling_walkers_reach_bullets_terminal_speed() {
+    // btMultiBody's drag, -m v (0.04 + 0.04 |v|), balances gravity at v (1 + v) = 9.8 / 0.04:
+    // 15.16 m/s. Without drag a 5 s fall would reach 49 m/s.
+    let terminal = (-1.0 + (1.0f32 + 4.0 * 9.8 / 0.04).sqrt()) / 2.0;
+    let mut obs = vec![0.0f32; 28];
+    let mut planar = Planar::hopper();
+    planar.reset(0, &mut obs[..15]).unwrap();
+    let mut ant = Spatial::ant();
+    ant.reset(0, &mut obs).unwrap();
+    for (name, speed) in [
+        ("hopper", planar.drop_for_test(5.0)),
+        ("ant", ant.drop_for_test(5.0)),
+    ] {
+        assert!(
+            (speed + terminal).abs() < 0.02 * terminal,
+            "{name}: {speed} m/s, terminal {terminal}"
+        );
+    }
+}
+
+#[test]
 fn the_ant_and_humanoid_weigh_what_pybullet_gives_them() {
     // PyBullet's MJCF importer: density 1000 over each geom's volume (ant.xml's own density 5 is
     // ignored). Ant: 182.2 kg; Humanoid: 42.1 kg plus 7 hinge-chain links of 10 g.
@@ -390,7 +411,7 @@ fn joint_torques_add_no_momentum_and_multibody_links_stay_jointed() {
         let spec = env.spec().clone();
         let mut obs = vec![0.0f32; spec.obs_dim];
         env.reset(1, &mut obs).unwrap();
-        env.set_gravity_for_test(0.0);
+        env.float_freely_for_test();
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         // The angular impulse the joints applied: what one-sided torques would have added.
         let mut impulse = 0.0;

@@ -16,6 +16,8 @@ const STALL_TORQUE_COST: f64 = -0.1;
 const JOINTS_AT_LIMIT_COST: f64 = -0.1;
 /// PyBullet clips every observation value to this magnitude.
 const OBSERVATION_CLIP: f32 = 5.0;
+/// btMultiBody's default linear and angular damping, which PyBullet keeps.
+const BULLET_DRAG: f32 = 0.04;
 
 /// PyBullet's potential: minus the distance to the target per control period.
 pub fn potential(distance_to_target: f32) -> f64 {
@@ -26,6 +28,12 @@ pub fn potential(distance_to_target: f32) -> f64 {
 pub fn joint_state(q: f32, qdot: f32, (lo, hi): (f32, f32)) -> [f32; 2] {
     let mid = 0.5 * (lo + hi);
     [2.0 * (q - mid) / (hi - lo), 0.1 * qdot]
+}
+
+/// btMultiBody's drag on every link, per unit of momentum: a link moving at `speed` (m/s, or rad/s
+/// for its spin) feels `-drag(speed)` times its momentum (`m v`, or `I w`) as force (or torque).
+pub fn bullet_drag(speed: f32) -> f32 {
+    BULLET_DRAG * (1.0 + speed)
 }
 
 pub fn clip_observation(obs: &mut [f32]) {
