@@ -81,6 +81,11 @@ pub trait Env: Send {
     /// tip. Walkers do not observe their x position, so it is integrated from the predicted
     /// forward speed.
     fn trace(&self, predicted: &[f32]) -> Vec<(f64, f64)>;
+    /// Where the robot is along the direction its task rewards moving in (metres): the walkers'
+    /// x. None for tasks without one (pendulum, lander).
+    fn forward_position(&self) -> Option<f64> {
+        None
+    }
 }
 
 /// An angle wrapped to [-pi, pi).

@@ -513,6 +513,11 @@ impl Env for Planar {
             .collect()
     }
 
+    /// The torso's x, which the progress reward measures.
+    fn forward_position(&self) -> Option<f64> {
+        Some(f64::from(self.torso().translation().x))
+    }
+
     fn spec(&self) -> &EnvSpec {
         &self.spec
     }

@@ -721,6 +721,11 @@ impl Env for Spatial {
             .collect()
     }
 
+    /// PyBullet's body x (the parts' mean), which the progress reward measures.
+    fn forward_position(&self) -> Option<f64> {
+        Some(f64::from(self.body_xyz().x))
+    }
+
     fn reset(&mut self, seed: u64, obs: &mut [f32]) -> Result<(), EnvError> {
         check_obs_len(&self.spec, obs)?;
         let mut rng = ChaCha8Rng::seed_from_u64(seed);

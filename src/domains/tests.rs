@@ -460,3 +460,18 @@ fn a_3d_trace_integrates_the_predicted_forward_speed() {
         assert!((pair[1].1 - pair[0].1).abs() < 1e-6, "{trace:?}");
     }
 }
+
+#[test]
+fn walkers_report_their_forward_position_and_the_others_none() {
+    for name in DOMAINS {
+        let mut env = make(name).unwrap();
+        let mut obs = vec![0.0f32; env.spec().obs_dim];
+        env.reset(4, &mut obs).unwrap();
+        let walker = !matches!(*name, "pendulum" | "lander");
+        assert_eq!(env.forward_position().is_some(), walker, "{name}");
+        if let Some(x) = env.forward_position() {
+            // Every walker starts at the origin, 1 km before its target.
+            assert!(x.abs() < 0.5, "{name}: starts at x = {x}");
+        }
+    }
+}

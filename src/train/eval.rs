@@ -16,6 +16,11 @@ pub struct Episode {
     pub ret: f64,
     pub discounted: f64,
     pub len: usize,
+    /// It ended by the task's termination (a walker fell, the lander landed or crashed), not by
+    /// the step limit.
+    pub terminated: bool,
+    /// How far the robot moved forward (`Env::forward_position`), metres.
+    pub distance: Option<f64>,
     /// len + 1 observations.
     pub observations: Vec<f32>,
     pub actions: Vec<f32>,
@@ -33,6 +38,7 @@ pub fn run_episode(
     let (od, ad) = (spec.obs_dim, spec.act_dim);
     let mut obs = vec![0.0; od];
     env.reset(seed, &mut obs)?;
+    let start = env.forward_position();
     let mut episode = Episode {
         observations: obs.clone(),
         ..Episode::default()
@@ -51,6 +57,8 @@ pub fn run_episode(
         episode.actions.extend_from_slice(&action);
         episode.observations.extend_from_slice(&obs);
         if t.terminated || t.truncated {
+            episode.terminated = t.terminated;
+            episode.distance = start.zip(env.forward_position()).map(|(a, b)| b - a);
             return Ok(episode);
         }
     }

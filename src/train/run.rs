@@ -87,6 +87,10 @@ pub struct TrainReport {
     pub value_scale: ValueScale,
     pub eval_return_mean: f64,
     pub eval_return_std: f64,
+    /// Of the deterministic evaluation's episodes, how many the task ended early (a fall).
+    pub eval_terminated: usize,
+    /// Their mean forward distance in metres (walkers).
+    pub eval_distance_mean: Option<f64>,
     pub random_return_mean: f64,
     pub model_errors: Vec<ModelError>,
     pub out: PathBuf,
@@ -577,6 +581,7 @@ impl Trainer {
         )?;
         let returns: Vec<f64> = episodes.iter().map(|e| e.ret).collect();
         let (eval_return_mean, eval_return_std) = eval::mean_std(&returns);
+        let distances: Option<Vec<f64>> = episodes.iter().map(|e| e.distance).collect();
         let value_scale = ValueScale {
             v_pi: eval::mean_std(&episodes.iter().map(|e| e.discounted).collect::<Vec<_>>()).0,
             v_rand: eval::mean_std(&randoms.iter().map(|e| e.discounted).collect::<Vec<_>>()).0,
@@ -602,6 +607,8 @@ impl Trainer {
             value_scale,
             eval_return_mean,
             eval_return_std,
+            eval_terminated: episodes.iter().filter(|e| e.terminated).count(),
+            eval_distance_mean: distances.map(|d| eval::mean_std(&d).0),
             random_return_mean: eval::mean_std(&randoms.iter().map(|e| e.ret).collect::<Vec<_>>())
                 .0,
             model_errors,

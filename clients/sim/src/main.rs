@@ -189,10 +189,17 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
                 };
                 let (r, rs) = mean(|e| e.ret);
                 let (f, fs) = mean(|e| e.forecast);
+                let ended = results.iter().filter(|e| e.terminated).count();
                 println!(
-                    "{} episodes: return {r:.2} +- {rs:.2}, forecast {f:.2} +- {fs:.2}",
+                    "{} episodes: return {r:.2} +- {rs:.2}, forecast {f:.2} +- {fs:.2}, \
+                     ended by the task in {ended}",
                     results.len()
                 );
+                let distances: Option<Vec<f64>> = results.iter().map(|e| e.distance).collect();
+                if let Some(d) = distances {
+                    let (d, ds) = prac::train::eval::mean_std(&d);
+                    println!("moved forward {d:.2} +- {ds:.2} m");
+                }
             }
             Ok(())
         }

@@ -66,6 +66,10 @@ pub struct EpisodeResult {
     pub steps: u64,
     pub ret: f64,
     pub discounted: f64,
+    /// The task ended it (a walker fell, the lander landed or crashed) before the step limit.
+    pub terminated: bool,
+    /// How far the robot moved forward, metres (walkers only).
+    pub distance: Option<f64>,
     /// Mean of the server's f_t over the episode.
     pub forecast: f64,
     /// Steps at which the old plan broke (a replan), per step.
@@ -138,6 +142,7 @@ pub async fn play_episode(
 
     let mut obs = vec![0.0; spec.obs_dim];
     env.reset(seed, &mut obs)?;
+    let start = env.forward_position();
     let mut result = EpisodeResult {
         seed,
         ..EpisodeResult::default()
@@ -196,6 +201,8 @@ pub async fn play_episode(
         discount *= info.gamma;
         result.steps += 1;
         if step.terminated || step.truncated {
+            result.terminated = step.terminated;
+            result.distance = start.zip(env.forward_position()).map(|(a, b)| b - a);
             break;
         }
     }

@@ -1,5 +1,5 @@
 //! prac-sim against a real `prac serve` it starts itself (target/<profile>/prac, built by the
-//! workspace's tests) on the shipped pendulum bundle.
+//! workspace's tests) on the shipped bundles.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -199,7 +199,38 @@ fn play_drives_a_rapier_domain_with_an_untrained_lander_policy() {
     for e in episodes.as_array().unwrap() {
         let steps = e["steps"].as_u64().unwrap();
         assert!((1..=1000).contains(&steps), "{e}");
+        assert_eq!(e["terminated"], steps < 1000, "{e}");
+        assert!(
+            e["distance"].is_null(),
+            "the lander has no forward task: {e}"
+        );
         assert_eq!(e["accounting_mismatches"], 0);
         assert_eq!(e["commitment_violations"], 0);
     }
+}
+
+#[test]
+fn play_reports_how_far_the_shipped_cheetah_runs() {
+    let out = sim(&[
+        "play",
+        "--policy",
+        "cheetah",
+        "--epsilon-coef",
+        "0.005",
+        "--episodes",
+        "1",
+        "--json",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let episodes: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let e = &episodes[0];
+    assert_eq!(e["steps"], 1000);
+    assert_eq!(e["terminated"], false);
+    assert_eq!(e["commitment_violations"], 0);
+    let distance = e["distance"].as_f64().unwrap();
+    assert!(distance > 30.0, "{e}");
 }

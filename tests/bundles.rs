@@ -1,0 +1,53 @@
+//! The shipped bundles do their tasks (issue 9's criteria), on seeds their training runs never
+//! evaluated on. A walker's forward distance comes from `Env::forward_position`.
+
+use std::path::Path;
+use std::sync::Arc;
+
+use prac::train::eval::{Episode, mean_std, policy_episodes};
+
+fn play(domain: &str, episodes: usize) -> (Arc<prac::policy::Policy>, Vec<Episode>) {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("bundles/{domain}.safetensors"));
+    let policy = Arc::new(prac::bundle::load(&path).unwrap());
+    assert_eq!(policy.manifest.domain, domain);
+    let mut env = prac::domains::make(domain).unwrap();
+    let played = policy_episodes(&policy, env.as_mut(), episodes, 777_000).unwrap();
+    (policy, played)
+}
+
+fn mean_return(episodes: &[Episode]) -> f64 {
+    mean_std(&episodes.iter().map(|e| e.ret).collect::<Vec<_>>()).0
+}
+
+#[test]
+fn the_shipped_pendulum_bundle_solves_pendulum() {
+    let (policy, episodes) = play("pendulum", 30);
+    let mean = mean_return(&episodes);
+    assert!(mean >= -200.0, "mean return {mean}");
+    let scale = policy.manifest.value_scale.unwrap();
+    assert!(scale.v_pi > scale.v_rand);
+}
+
+#[test]
+fn the_shipped_lander_bundle_lands() {
+    let (_, episodes) = play("lander", 20);
+    let mean = mean_return(&episodes);
+    assert!(mean >= 200.0, "mean return {mean}");
+}
+
+#[test]
+fn the_shipped_cheetah_bundle_runs_forward() {
+    let (_, episodes) = play("cheetah", 3);
+    for e in &episodes {
+        assert!(!e.terminated && e.len == 1000, "{} steps", e.len);
+        let distance = e.distance.unwrap();
+        assert!(distance > 30.0, "ran {distance} m");
+        // The progress reward sums to distance / control period, and the alive bonus is at
+        // most 1 per step: the return bounds the distance from below.
+        assert!(
+            distance >= 0.0165 * (e.ret - 1000.0) - 0.01,
+            "ran {distance} m for a return of {}",
+            e.ret
+        );
+    }
+}
