@@ -51,3 +51,31 @@ fn the_shipped_cheetah_bundle_runs_forward() {
         );
     }
 }
+
+/// Issue 9's walker criterion: moving forward without falling in at least 80% of episodes.
+fn walks_forward_without_falling(domain: &str) {
+    let (_, episodes) = play(domain, 5);
+    let upright = episodes.iter().filter(|e| !e.terminated).count();
+    assert!(
+        upright * 5 >= episodes.len() * 4,
+        "{domain}: {upright} of 5 upright"
+    );
+    for e in &episodes {
+        let distance = e.distance.unwrap();
+        assert!(
+            distance > 10.0,
+            "{domain}: moved {distance} m in {} steps",
+            e.len
+        );
+    }
+}
+
+#[test]
+fn the_shipped_walker_bundle_walks_forward_without_falling() {
+    walks_forward_without_falling("walker");
+}
+
+#[test]
+fn the_shipped_ant_bundle_walks_forward_without_falling() {
+    walks_forward_without_falling("ant");
+}
