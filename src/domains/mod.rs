@@ -88,6 +88,11 @@ pub trait Env: Send {
     }
 }
 
+/// How far the robot moved forward since it was at `start` (an earlier `forward_position`).
+pub fn forward_distance(start: Option<f64>, env: &dyn Env) -> Option<f64> {
+    start.zip(env.forward_position()).map(|(a, b)| b - a)
+}
+
 /// An angle wrapped to [-pi, pi).
 pub fn wrap_angle(x: f64) -> f64 {
     (x + std::f64::consts::PI).rem_euclid(2.0 * std::f64::consts::PI) - std::f64::consts::PI

@@ -6,7 +6,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
 use crate::bundle::ValueScale;
-use crate::domains::{Env, EnvError};
+use crate::domains::{Env, EnvError, forward_distance};
 use crate::plan::Networks;
 use crate::policy::{Evaluator, Policy, unscale_action};
 
@@ -58,7 +58,7 @@ pub fn run_episode(
         episode.observations.extend_from_slice(&obs);
         if t.terminated || t.truncated {
             episode.terminated = t.terminated;
-            episode.distance = start.zip(env.forward_position()).map(|(a, b)| b - a);
+            episode.distance = forward_distance(start, env);
             return Ok(episode);
         }
     }

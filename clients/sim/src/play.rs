@@ -202,7 +202,7 @@ pub async fn play_episode(
         result.steps += 1;
         if step.terminated || step.truncated {
             result.terminated = step.terminated;
-            result.distance = start.zip(env.forward_position()).map(|(a, b)| b - a);
+            result.distance = prac::domains::forward_distance(start, &*env);
             break;
         }
     }
