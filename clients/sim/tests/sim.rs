@@ -9,44 +9,54 @@ fn root() -> PathBuf {
 }
 
 fn sim(args: &[&str]) -> std::process::Output {
+    sim_on(&root().join("bundles"), args)
+}
+
+fn sim_on(bundles: &Path, args: &[&str]) -> std::process::Output {
     Command::new(env!("CARGO_BIN_EXE_prac-sim"))
         .arg("--bundles")
-        .arg(root().join("bundles"))
+        .arg(bundles)
         .arg("--quiet")
         .args(args)
         .output()
         .unwrap()
 }
 
-#[test]
-fn play_accounts_the_forecast_as_the_server_reports_it() {
-    let dir = tempfile::tempdir().unwrap();
-    let png = dir.path().join("frame.png");
-    let out = sim(&[
-        "play",
-        "--policy",
-        "pendulum",
-        "--epsilon-coef",
-        "0.01",
-        "--episodes",
-        "3",
-        "--seed",
-        "5",
-        "--json",
-        "--render",
-        png.to_str().unwrap(),
-        "--render-step",
-        "10",
-    ]);
+/// `prac-sim play ARGS --json` on `bundles`, which must succeed; its episodes.
+fn play_json(bundles: &Path, args: &[&str]) -> Vec<serde_json::Value> {
+    let out = sim_on(bundles, &[&["play"], args, &["--json"]].concat());
     assert!(
         out.status.success(),
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
     let episodes: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-    let episodes = episodes.as_array().unwrap();
+    episodes.as_array().unwrap().clone()
+}
+
+#[test]
+fn play_accounts_the_forecast_as_the_server_reports_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let png = dir.path().join("frame.png");
+    let episodes = play_json(
+        &root().join("bundles"),
+        &[
+            "--policy",
+            "pendulum",
+            "--epsilon-coef",
+            "0.01",
+            "--episodes",
+            "3",
+            "--seed",
+            "5",
+            "--render",
+            png.to_str().unwrap(),
+            "--render-step",
+            "10",
+        ],
+    );
     assert_eq!(episodes.len(), 3);
-    for e in episodes {
+    for e in &episodes {
         assert_eq!(e["steps"], 200);
         // f_t from each forecast's decided_at equals the server's f_t, and every kept action
         // was executed as committed one step earlier.
@@ -60,18 +70,10 @@ fn play_accounts_the_forecast_as_the_server_reports_it() {
 
     // eps = 0: a fresh decision at every step, forecast 1 except where the policy's plan was
     // kept because pi(s) itself passes the test with equality.
-    let out = sim(&[
-        "play",
-        "--policy",
-        "pendulum",
-        "--epsilon",
-        "0",
-        "--episodes",
-        "1",
-        "--json",
-    ]);
-    assert!(out.status.success());
-    let e: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let e = play_json(
+        &root().join("bundles"),
+        &["--policy", "pendulum", "--epsilon", "0", "--episodes", "1"],
+    );
     assert!(e[0]["forecast"].as_f64().unwrap() < 2.0);
 
     let out = sim(&["play", "--policy", "nope"]);
@@ -176,27 +178,18 @@ fn play_drives_a_rapier_domain_with_an_untrained_lander_policy() {
     manifest.provenance.trainer = "random init (prac-sim test)".into();
     let policy = prac::policy::Policy::random(manifest, 11);
     prac::bundle::save(&policy, &dir.path().join("lander-untrained.safetensors")).unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_prac-sim"))
-        .arg("--bundles")
-        .arg(dir.path())
-        .args([
-            "--quiet",
-            "play",
+    let episodes = play_json(
+        dir.path(),
+        &[
             "--policy",
             "lander-untrained",
             "--epsilon-coef",
             "0.01",
-        ])
-        .args(["--episodes", "2", "--json"])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+            "--episodes",
+            "2",
+        ],
     );
-    let episodes: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-    for e in episodes.as_array().unwrap() {
+    for e in &episodes {
         let steps = e["steps"].as_u64().unwrap();
         assert!((1..=1000).contains(&steps), "{e}");
         assert_eq!(e["terminated"], steps < 1000, "{e}");
@@ -211,22 +204,17 @@ fn play_drives_a_rapier_domain_with_an_untrained_lander_policy() {
 
 #[test]
 fn play_reports_how_far_the_shipped_cheetah_runs() {
-    let out = sim(&[
-        "play",
-        "--policy",
-        "cheetah",
-        "--epsilon-coef",
-        "0.005",
-        "--episodes",
-        "1",
-        "--json",
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let episodes = play_json(
+        &root().join("bundles"),
+        &[
+            "--policy",
+            "cheetah",
+            "--epsilon-coef",
+            "0.005",
+            "--episodes",
+            "1",
+        ],
     );
-    let episodes: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let e = &episodes[0];
     assert_eq!(e["steps"], 1000);
     assert_eq!(e["terminated"], false);
