@@ -79,3 +79,24 @@ fn the_shipped_walker_bundle_walks_forward_without_falling() {
 fn the_shipped_ant_bundle_walks_forward_without_falling() {
     walks_forward_without_falling("ant");
 }
+
+/// The Hopper does not meet the walker criterion yet (docs/results.md: 21 of 50 episodes
+/// upright); it hops forward instead of the earlier bundle's 2.25 m dive.
+#[test]
+fn the_shipped_hopper_bundle_hops_forward() {
+    let (_, episodes) = play("hopper", 5);
+    let distances: Vec<f64> = episodes.iter().map(|e| e.distance.unwrap()).collect();
+    let (mean, _) = mean_std(&distances);
+    assert!(mean > 10.0, "moved {distances:?} m");
+    assert!(mean_return(&episodes) > 1000.0);
+}
+
+/// The Humanoid does not walk yet (docs/results.md): it keeps its balance in most episodes
+/// but barely moves.
+#[test]
+fn the_shipped_humanoid_bundle_keeps_its_balance() {
+    let (_, episodes) = play("humanoid", 5);
+    let upright = episodes.iter().filter(|e| !e.terminated).count();
+    assert!(upright >= 2, "{upright} of 5 upright");
+    assert!(mean_return(&episodes) > 500.0);
+}
