@@ -15,6 +15,11 @@ fn play(domain: &str, episodes: usize) -> (Arc<prac::policy::Policy>, Vec<Episod
     (policy, played)
 }
 
+/// Episodes the task did not end early (the robot did not fall).
+fn count_upright(episodes: &[Episode]) -> usize {
+    episodes.iter().filter(|e| !e.terminated).count()
+}
+
 fn mean_return(episodes: &[Episode]) -> f64 {
     mean_std(&episodes.iter().map(|e| e.ret).collect::<Vec<_>>()).0
 }
@@ -55,7 +60,7 @@ fn the_shipped_cheetah_bundle_runs_forward() {
 /// Issue 9's walker criterion: moving forward without falling in at least 80% of episodes.
 fn walks_forward_without_falling(domain: &str) {
     let (_, episodes) = play(domain, 5);
-    let upright = episodes.iter().filter(|e| !e.terminated).count();
+    let upright = count_upright(&episodes);
     assert!(
         upright * 5 >= episodes.len() * 4,
         "{domain}: {upright} of 5 upright"
@@ -96,7 +101,7 @@ fn the_shipped_hopper_bundle_hops_forward() {
 #[test]
 fn the_shipped_humanoid_bundle_keeps_its_balance() {
     let (_, episodes) = play("humanoid", 5);
-    let upright = episodes.iter().filter(|e| !e.terminated).count();
+    let upright = count_upright(&episodes);
     assert!(upright >= 2, "{upright} of 5 upright");
     assert!(mean_return(&episodes) > 500.0);
 }

@@ -8,8 +8,12 @@ fn root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
 }
 
+fn shipped_bundles() -> PathBuf {
+    root().join("bundles")
+}
+
 fn sim(args: &[&str]) -> std::process::Output {
-    sim_on(&root().join("bundles"), args)
+    sim_on(&shipped_bundles(), args)
 }
 
 fn sim_on(bundles: &Path, args: &[&str]) -> std::process::Output {
@@ -30,8 +34,7 @@ fn play_json(bundles: &Path, args: &[&str]) -> Vec<serde_json::Value> {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let episodes: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-    episodes.as_array().unwrap().clone()
+    serde_json::from_slice(&out.stdout).unwrap()
 }
 
 #[test]
@@ -39,7 +42,7 @@ fn play_accounts_the_forecast_as_the_server_reports_it() {
     let dir = tempfile::tempdir().unwrap();
     let png = dir.path().join("frame.png");
     let episodes = play_json(
-        &root().join("bundles"),
+        &shipped_bundles(),
         &[
             "--policy",
             "pendulum",
@@ -71,7 +74,7 @@ fn play_accounts_the_forecast_as_the_server_reports_it() {
     // eps = 0: a fresh decision at every step, forecast 1 except where the policy's plan was
     // kept because pi(s) itself passes the test with equality.
     let e = play_json(
-        &root().join("bundles"),
+        &shipped_bundles(),
         &["--policy", "pendulum", "--epsilon", "0", "--episodes", "1"],
     );
     assert!(e[0]["forecast"].as_f64().unwrap() < 2.0);
@@ -205,7 +208,7 @@ fn play_drives_a_rapier_domain_with_an_untrained_lander_policy() {
 #[test]
 fn play_reports_how_far_the_shipped_cheetah_runs() {
     let episodes = play_json(
-        &root().join("bundles"),
+        &shipped_bundles(),
         &[
             "--policy",
             "cheetah",
