@@ -25,6 +25,22 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// A bundle's deterministic policy against random actions on its domain: return, falls,
+    /// forward distance.
+    Evaluate {
+        file: PathBuf,
+        #[arg(long, default_value_t = 50)]
+        episodes: usize,
+        /// First episode's seed (the training runs evaluate from 2^41).
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Print the evaluation as JSON.
+        #[arg(long)]
+        json: bool,
+        /// Also write the evaluation as JSON to this file.
+        #[arg(long)]
+        json_out: Option<PathBuf>,
+    },
     /// The domains: name, obs and act dims, episode length, control period, physics engine.
     Domains,
     /// Env steps/s per domain under random actions (one thread), and random-policy returns.
@@ -100,6 +116,25 @@ fn main() -> ExitCode {
         Command::Inspect { file, json } => {
             prac::cli::inspect::run(&file, json).map(|text| print!("{text}"))
         }
+        Command::Evaluate {
+            file,
+            episodes,
+            seed,
+            json,
+            json_out,
+        } => prac::cli::evaluate::run(&file, episodes, seed).and_then(|e| {
+            if let Some(path) = json_out {
+                std::fs::write(&path, serde_json::to_string_pretty(&e)? + "\n")
+                    .map_err(|err| anyhow::anyhow!("writing {}: {err}", path.display()))?;
+            }
+            let text = if json {
+                serde_json::to_string_pretty(&e)? + "\n"
+            } else {
+                prac::cli::evaluate::report(&e)
+            };
+            print!("{text}");
+            Ok(())
+        }),
         Command::Domains => {
             print!("{}", prac::cli::domains::table());
             Ok(())

@@ -1,4 +1,4 @@
-//! `prac inspect` on bundles written by test code.
+//! `prac inspect` on bundles written by test code, and `prac evaluate` on a shipped one.
 
 mod common;
 
@@ -56,5 +56,50 @@ fn inspect_names_the_file_and_field_of_a_bad_bundle() {
     assert!(
         err.contains("bad.safetensors: manifest.gamma: is 1"),
         "{err}"
+    );
+}
+
+#[test]
+fn evaluate_plays_a_bundle_against_random_actions() {
+    let bundle = concat!(env!("CARGO_MANIFEST_DIR"), "/bundles/pendulum.safetensors");
+    let dir = tempfile::tempdir().unwrap();
+    let json_out = dir.path().join("evaluation.json");
+    let out = prac(&[
+        "evaluate",
+        bundle,
+        "--episodes",
+        "3",
+        "--seed",
+        "5",
+        "--json-out",
+        json_out.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = String::from_utf8(out.stdout).unwrap();
+    assert!(
+        text.contains("(pendulum), 3 episodes from seed 5"),
+        "{text}"
+    );
+    let e: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json_out).unwrap()).unwrap();
+    // The trained swing-up beats random torques by far.
+    let (policy, random) = (&e["policy"], &e["random"]);
+    assert!(
+        policy["return_mean"].as_f64().unwrap() > random["return_mean"].as_f64().unwrap() + 300.0,
+        "{e}"
+    );
+    assert_eq!(policy["terminated"], 0);
+    assert!(policy["distance_mean"].is_null());
+
+    let bad = prac(&["evaluate", bundle, "--episodes", "0"]);
+    assert!(!bad.status.success());
+    assert!(
+        String::from_utf8(bad.stderr)
+            .unwrap()
+            .contains("--episodes")
     );
 }

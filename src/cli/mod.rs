@@ -2,6 +2,7 @@
 
 pub mod bench;
 pub mod domains;
+pub mod evaluate;
 pub mod inspect;
 pub mod render;
 pub mod train;

@@ -1,0 +1,136 @@
+//! `prac evaluate FILE`: a bundle's deterministic policy against uniformly random actions on its
+//! domain, the figures issue 9's task criteria are judged on.
+
+use std::path::Path;
+use std::sync::Arc;
+
+use serde::Serialize;
+
+use crate::bundle;
+use crate::domains;
+use crate::train::eval::{Episode, mean_std, policy_episodes, random_episodes};
+
+/// Episodes `seed`, `seed + 1`, ... of one way of acting.
+#[derive(Debug, Serialize)]
+pub struct Played {
+    pub return_mean: f64,
+    pub return_std: f64,
+    pub discounted_mean: f64,
+    /// Episodes the task ended early (a walker fell, the lander touched down or crashed).
+    pub terminated: usize,
+    pub steps_mean: f64,
+    /// Forward distance in metres, for the walkers.
+    pub distance_mean: Option<f64>,
+}
+
+#[derive(Debug, Serialize)]
+pub struct Evaluation {
+    pub bundle: String,
+    pub domain: String,
+    pub episodes: usize,
+    pub seed: u64,
+    pub policy: Played,
+    pub random: Played,
+}
+
+fn summarise(episodes: &[Episode]) -> Played {
+    let of = |f: &dyn Fn(&Episode) -> f64| episodes.iter().map(f).collect::<Vec<_>>();
+    let (return_mean, return_std) = mean_std(&of(&|e| e.ret));
+    let distances: Option<Vec<f64>> = episodes.iter().map(|e| e.distance).collect();
+    Played {
+        return_mean,
+        return_std,
+        discounted_mean: mean_std(&of(&|e| e.discounted)).0,
+        terminated: episodes.iter().filter(|e| e.terminated).count(),
+        steps_mean: mean_std(&of(&|e| e.len as f64)).0,
+        distance_mean: distances.map(|d| mean_std(&d).0),
+    }
+}
+
+/// Plays `episodes` episodes of the bundle's deterministic policy and as many of random actions,
+/// from the same start seeds.
+pub fn run(path: &Path, episodes: usize, seed: u64) -> anyhow::Result<Evaluation> {
+    anyhow::ensure!(episodes > 0, "--episodes must be at least 1");
+    let policy = Arc::new(bundle::load(path)?);
+    let domain = policy.manifest.domain.clone();
+    let mut env = domains::make(&domain).ok_or_else(|| {
+        anyhow::anyhow!("the bundle is for domain {domain:?}, which this build does not have")
+    })?;
+    let played = policy_episodes(&policy, env.as_mut(), episodes, seed)?;
+    let randoms = random_episodes(env.as_mut(), policy.manifest.gamma, episodes, seed)?;
+    Ok(Evaluation {
+        bundle: path.display().to_string(),
+        domain,
+        episodes,
+        seed,
+        policy: summarise(&played),
+        random: summarise(&randoms),
+    })
+}
+
+/// The evaluation as a few lines of text.
+pub fn report(e: &Evaluation) -> String {
+    let line = |name: &str, p: &Played| {
+        let distance = p
+            .distance_mean
+            .map(|d| format!(", {d:.2} m forward"))
+            .unwrap_or_default();
+        format!(
+            "{name:<7} return {:.1} +- {:.1}, discounted {:.2}, {} of {} ended early, {:.0} steps{distance}\n",
+            p.return_mean, p.return_std, p.discounted_mean, p.terminated, e.episodes, p.steps_mean
+        )
+    };
+    format!(
+        "{} ({}), {} episodes from seed {}\n{}{}",
+        e.bundle,
+        e.domain,
+        e.episodes,
+        e.seed,
+        line("policy", &e.policy),
+        line("random", &e.random)
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn episode(ret: f64, terminated: bool, distance: Option<f64>) -> Episode {
+        Episode {
+            ret,
+            discounted: ret / 2.0,
+            len: if terminated { 10 } else { 20 },
+            terminated,
+            distance,
+            ..Episode::default()
+        }
+    }
+
+    #[test]
+    fn a_summary_counts_falls_and_averages_distances() {
+        let s = summarise(&[
+            episode(1.0, true, Some(1.0)),
+            episode(3.0, false, Some(3.0)),
+        ]);
+        assert_eq!(s.terminated, 1);
+        assert_eq!(
+            (s.return_mean, s.discounted_mean, s.steps_mean),
+            (2.0, 1.0, 15.0)
+        );
+        assert_eq!(s.distance_mean, Some(2.0));
+        let no_distance = summarise(&[episode(1.0, false, None)]);
+        assert_eq!(no_distance.distance_mean, None);
+    }
+
+    #[test]
+    fn evaluating_no_episodes_or_a_missing_bundle_is_an_error() {
+        let missing = Path::new("/nonexistent/hopper.safetensors");
+        assert!(
+            run(missing, 0, 0)
+                .unwrap_err()
+                .to_string()
+                .contains("--episodes")
+        );
+        assert!(run(missing, 1, 0).is_err());
+    }
+}
