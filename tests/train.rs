@@ -1,5 +1,5 @@
-//! `prac train` as a process: a run killed with SIGKILL resumes from its checkpoint and continues
-//! its step count and curve; training-with-PrAC commits to plans; `prac fit-model` fits a model
+//! `prac train` as a process: a run killed with SIGKILL resumes from its checkpoint (networks,
+//! optimisers and replay buffer) and continues its step count and curve; training-with-PrAC commits to plans; `prac fit-model` fits a model
 //! from recorded transitions.
 
 use std::path::Path;
@@ -90,6 +90,13 @@ fn a_killed_run_resumes_from_its_checkpoint() {
     let stderr = String::from_utf8_lossy(&resumed.stderr);
     assert!(
         stderr.contains(&format!("resuming at step {at_kill}")),
+        "{stderr}"
+    );
+    // The buffer came back whole: one transition per step before the kill.
+    assert!(
+        stderr.contains(&format!(
+            "restored {at_kill} transitions from the checkpoint's replay buffer"
+        )),
         "{stderr}"
     );
     let report: serde_json::Value = serde_json::from_slice(&resumed.stdout).unwrap();

@@ -42,6 +42,10 @@ pub struct TrainArgs {
     /// Time between checkpoints.
     #[arg(long, default_value = "2m", value_parser = humantime::parse_duration)]
     pub checkpoint_every: Duration,
+    /// Leave the replay buffer out of checkpoints (smaller files; a resumed run then refills the
+    /// buffer with its current policy before it learns again).
+    #[arg(long)]
+    pub no_checkpoint_replay: bool,
     /// Continue from the checkpoint (networks, optimiser state, counters, curve).
     #[arg(long)]
     pub resume: bool,
@@ -146,6 +150,7 @@ pub fn train(args: TrainArgs) -> anyhow::Result<()> {
         options.checkpoint_dir = dir.clone();
     }
     options.checkpoint_every = args.checkpoint_every;
+    options.checkpoint_replay = !args.no_checkpoint_replay;
     options.eval_every = args.eval_every;
     options.eval_episodes = args.eval_episodes.max(1);
     options.value_episodes = args.value_episodes.max(1);
@@ -157,6 +162,12 @@ pub fn train(args: TrainArgs) -> anyhow::Result<()> {
             "resuming at step {} (episode {})",
             trainer.progress.step, trainer.progress.episode
         );
+        match trainer.restored_transitions {
+            Some(n) => eprintln!("restored {n} transitions from the checkpoint's replay buffer"),
+            None => eprintln!(
+                "the checkpoint has no replay buffer: refilling it before learning goes on"
+            ),
+        }
     }
     let report = trainer.run()?;
     println!("{}", serde_json::to_string_pretty(&report)?);

@@ -1,6 +1,12 @@
-//! The replay buffer: a ring of transitions in flat arrays, sampled uniformly.
+//! The replay buffer: a ring of transitions in flat arrays, sampled uniformly. Checkpoints save
+//! it as a safetensors file, oldest transition first.
 
+use std::collections::HashMap;
+use std::path::Path;
+
+use anyhow::{Context, bail};
 use rand::Rng;
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
 use super::sac::Batch;
 
@@ -91,21 +97,222 @@ impl ReplayBuffer {
         }
     }
 
+    /// Slot indices in insertion order (oldest first).
+    fn order(&self) -> impl Iterator<Item = usize> {
+        let oldest = if self.len == self.capacity {
+            self.next
+        } else {
+            0
+        };
+        (oldest..self.len).chain(0..oldest)
+    }
+
     /// The transitions in insertion order (oldest first): obs, actions, next_obs.
     pub fn transitions(&self) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
         let (od, ad) = (self.obs_dim, self.act_dim);
-        let order: Vec<usize> = if self.len < self.capacity {
-            (0..self.len).collect()
-        } else {
-            (self.next..self.capacity).chain(0..self.next).collect()
-        };
         let mut out = (Vec::new(), Vec::new(), Vec::new());
-        for i in order {
+        for i in self.order() {
             out.0.extend_from_slice(&self.obs[i * od..(i + 1) * od]);
             out.1.extend_from_slice(&self.actions[i * ad..(i + 1) * ad]);
             out.2
                 .extend_from_slice(&self.next_obs[i * od..(i + 1) * od]);
         }
         out
+    }
+
+    fn columns(&self) -> [(&'static str, &[f32], usize); 5] {
+        let (od, ad) = (self.obs_dim, self.act_dim);
+        [
+            ("obs", &self.obs, od),
+            ("actions", &self.actions, ad),
+            ("rewards", &self.rewards, 1),
+            ("next_obs", &self.next_obs, od),
+            ("dones", &self.dones, 1),
+        ]
+    }
+
+    /// Writes the transitions, oldest first, as safetensors tensors `obs` [n, obs_dim],
+    /// `actions` [n, act_dim], `rewards` [n, 1], `next_obs` [n, obs_dim] and `dones` [n, 1].
+    pub fn save(&self, path: &Path) -> anyhow::Result<()> {
+        let data: Vec<(&str, usize, Vec<u8>)> = self
+            .columns()
+            .into_iter()
+            .map(|(name, values, width)| {
+                let mut bytes = Vec::with_capacity(values.len() * 4);
+                for i in self.order() {
+                    for v in &values[i * width..(i + 1) * width] {
+                        bytes.extend_from_slice(&v.to_le_bytes());
+                    }
+                }
+                (name, width, bytes)
+            })
+            .collect();
+        let mut views = Vec::with_capacity(data.len());
+        for (name, width, bytes) in &data {
+            views.push((
+                name.to_string(),
+                TensorView::new(Dtype::F32, vec![self.len, *width], bytes)?,
+            ));
+        }
+        let metadata = HashMap::from([("format".to_string(), "prac-replay".to_string())]);
+        safetensors::serialize_to_file(views, Some(metadata), path)
+            .with_context(|| format!("writing {}", path.display()))
+    }
+
+    /// Reads a buffer written by `save` into one of `capacity` (the newest transitions are kept
+    /// when the file holds more).
+    pub fn load(
+        path: &Path,
+        obs_dim: usize,
+        act_dim: usize,
+        capacity: usize,
+    ) -> anyhow::Result<ReplayBuffer> {
+        let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+        let tensors = SafeTensors::deserialize(&bytes)
+            .map_err(|e| anyhow::anyhow!("{}: not a replay buffer: {e}", path.display()))?;
+        let mut buffer = ReplayBuffer::new(obs_dim, act_dim, capacity);
+        let mut columns: Vec<Vec<f32>> = Vec::with_capacity(5);
+        let mut rows = None;
+        for (name, _, width) in buffer.columns() {
+            let view = tensors
+                .tensor(name)
+                .map_err(|_| anyhow::anyhow!("{}: {name}: missing tensor", path.display()))?;
+            let shape = view.shape();
+            if view.dtype() != Dtype::F32 || shape.len() != 2 || shape[1] != width {
+                bail!(
+                    "{}: {name}: {:?} {shape:?}, expected F32 [n, {width}] for a buffer of \
+                     {obs_dim}-dimensional observations and {act_dim}-dimensional actions",
+                    path.display(),
+                    view.dtype()
+                );
+            }
+            if *rows.get_or_insert(shape[0]) != shape[0] {
+                bail!(
+                    "{}: {name}: {} transitions, the others {}",
+                    path.display(),
+                    shape[0],
+                    rows.unwrap_or(0)
+                );
+            }
+            columns.push(
+                view.data()
+                    .chunks_exact(4)
+                    .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                    .collect(),
+            );
+        }
+        let [obs, actions, rewards, next_obs, dones] = &columns[..] else {
+            unreachable!("five columns were read")
+        };
+        let (od, ad) = (obs_dim, act_dim);
+        for i in 0..rows.unwrap_or(0) {
+            buffer.push(
+                &obs[i * od..(i + 1) * od],
+                &actions[i * ad..(i + 1) * ad],
+                rewards[i],
+                &next_obs[i * od..(i + 1) * od],
+                dones[i] != 0.0,
+            );
+        }
+        Ok(buffer)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+
+    use super::*;
+
+    /// A buffer of `capacity` after `pushed` transitions whose values encode their index.
+    fn filled(capacity: usize, pushed: usize) -> ReplayBuffer {
+        let mut buffer = ReplayBuffer::new(2, 1, capacity);
+        for k in 0..pushed {
+            let x = k as f32;
+            buffer.push(
+                &[x, -x],
+                &[x / 100.0],
+                x * 10.0,
+                &[x + 0.5, 0.0],
+                k % 3 == 0,
+            );
+        }
+        buffer
+    }
+
+    /// Every column, oldest transition first.
+    fn all(buffer: &ReplayBuffer) -> Vec<Vec<f32>> {
+        buffer
+            .columns()
+            .into_iter()
+            .map(|(_, values, width)| {
+                buffer
+                    .order()
+                    .flat_map(|i| values[i * width..(i + 1) * width].to_vec())
+                    .collect()
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_saved_buffer_loads_with_the_same_transitions_in_the_same_order() {
+        let dir = tempfile::tempdir().unwrap();
+        for (capacity, pushed) in [(5, 0), (5, 3), (5, 5), (5, 8)] {
+            let buffer = filled(capacity, pushed);
+            let path = dir.path().join(format!("{capacity}-{pushed}.safetensors"));
+            buffer.save(&path).unwrap();
+            let loaded = ReplayBuffer::load(&path, 2, 1, capacity).unwrap();
+            assert_eq!(loaded.len(), pushed.min(capacity));
+            assert_eq!(
+                all(&loaded),
+                all(&buffer),
+                "capacity {capacity}, pushed {pushed}"
+            );
+            // The next push overwrites the same (oldest) transition in both.
+            let (mut a, mut b) = (buffer, loaded);
+            a.push(&[9.0, 9.0], &[0.9], 90.0, &[9.0, 9.0], false);
+            b.push(&[9.0, 9.0], &[0.9], 90.0, &[9.0, 9.0], false);
+            assert_eq!(all(&a), all(&b));
+        }
+        // Into a smaller buffer the newest survive: transitions 5, 6 and 7 of 8.
+        let path = dir.path().join("5-8.safetensors");
+        let smaller = ReplayBuffer::load(&path, 2, 1, 3).unwrap();
+        assert_eq!(
+            smaller.transitions().0,
+            vec![5.0, -5.0, 6.0, -6.0, 7.0, -7.0]
+        );
+        let mut batch = Batch::default();
+        smaller.sample(16, &mut ChaCha8Rng::seed_from_u64(1), &mut batch);
+        assert!(batch.rewards.iter().all(|r| [50.0, 60.0, 70.0].contains(r)));
+    }
+
+    #[test]
+    fn a_buffer_file_of_other_dimensions_or_cut_short_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.safetensors");
+        filled(5, 4).save(&path).unwrap();
+        let error = ReplayBuffer::load(&path, 3, 1, 5)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(
+            error.contains("obs") && error.contains("expected F32 [n, 3]"),
+            "{error}"
+        );
+        let error = ReplayBuffer::load(&path, 2, 2, 5)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(error.contains("actions"), "{error}");
+        let bytes = std::fs::read(&path).unwrap();
+        std::fs::write(&path, &bytes[..bytes.len() - 7]).unwrap();
+        let error = ReplayBuffer::load(&path, 2, 1, 5)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(error.contains("not a replay buffer"), "{error}");
+        let missing = dir.path().join("none.safetensors");
+        assert!(ReplayBuffer::load(&missing, 2, 1, 5).is_err());
     }
 }

@@ -1,7 +1,7 @@
 //! Checkpoints: the networks, target critics, temperature and model with their Adam states
-//! (burnpack files), and the options, counters and model statistics (state.json). The replay
-//! buffer is not saved: it is the bulk of a run's memory, and a resumed run refills it with its
-//! current policy before learning again (see docs/training.md).
+//! (burnpack files), the options, counters and model statistics (state.json), and the replay
+//! buffer (replay.safetensors) unless the run leaves it out. A run resumed without a saved buffer
+//! refills it with its current policy before learning again (see docs/training.md).
 //!
 //! A checkpoint is written to `DIR.tmp` and renamed into place, so a run killed while saving
 //! still has its previous checkpoint.
@@ -12,11 +12,13 @@ use anyhow::Context;
 use burn::module::Module;
 use serde::{Deserialize, Serialize};
 
+use super::buffer::ReplayBuffer;
 use super::model::{ModelStats, ModelTrainer};
 use super::run::{Progress, TrainOptions};
 use super::sac::Sac;
 
 pub const STATE_FILE: &str = "state.json";
+pub const REPLAY_FILE: &str = "replay.safetensors";
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct Saved {
@@ -53,7 +55,13 @@ fn record_error(path: &Path, e: impl std::fmt::Display) -> anyhow::Error {
     anyhow::anyhow!("{}: {e}", path.display())
 }
 
-pub fn save(dir: &Path, saved: &Saved, sac: &Sac, model: &ModelTrainer) -> anyhow::Result<()> {
+pub fn save(
+    dir: &Path,
+    saved: &Saved,
+    sac: &Sac,
+    model: &ModelTrainer,
+    replay: Option<&ReplayBuffer>,
+) -> anyhow::Result<()> {
     let tmp = sibling(dir, ".tmp");
     if tmp.exists() {
         std::fs::remove_dir_all(&tmp)?;
@@ -105,6 +113,9 @@ pub fn save(dir: &Path, saved: &Saved, sac: &Sac, model: &ModelTrainer) -> anyho
         progress: saved.progress.clone(),
         model_stats: model.stats.clone(),
     };
+    if let Some(buffer) = replay {
+        buffer.save(&file(REPLAY_FILE))?;
+    }
     std::fs::write(file(STATE_FILE), serde_json::to_vec_pretty(&state)?)?;
     // Swap in: the old checkpoint stays complete until the new one has its final name.
     let old = sibling(dir, ".old");
@@ -172,4 +183,20 @@ pub fn load(dir: &Path, sac: &mut Sac, model: &mut ModelTrainer) -> anyhow::Resu
         options: state.options,
         progress: state.progress,
     })
+}
+
+/// The replay buffer saved with the newest complete checkpoint, if it has one.
+pub fn load_replay(
+    dir: &Path,
+    obs_dim: usize,
+    act_dim: usize,
+    capacity: usize,
+) -> anyhow::Result<Option<ReplayBuffer>> {
+    let Some(path) = complete(dir).map(|d| d.join(REPLAY_FILE)) else {
+        return Ok(None);
+    };
+    if !path.is_file() {
+        return Ok(None);
+    }
+    ReplayBuffer::load(&path, obs_dim, act_dim, capacity).map(Some)
 }

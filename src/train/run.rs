@@ -27,6 +27,11 @@ use crate::nn::Activation;
 use crate::plan::{self, Commitment, Growth, Networks, ReplanConfig, ReplanScratch};
 use crate::policy::{Evaluator, Policy};
 
+/// Checkpoints written before the option existed had no buffer; runs save it by default.
+fn saves_replay() -> bool {
+    true
+}
+
 /// Everything `prac train` takes.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct TrainOptions {
@@ -45,6 +50,9 @@ pub struct TrainOptions {
     pub eval_csv: PathBuf,
     pub checkpoint_dir: PathBuf,
     pub checkpoint_every: Duration,
+    /// Checkpoints hold the replay buffer, so a resumed run learns on from the same data.
+    #[serde(default = "saves_replay")]
+    pub checkpoint_replay: bool,
     pub eval_every: u64,
     pub eval_episodes: usize,
     /// Episodes for V_pi and V_rand at the end.
@@ -70,6 +78,7 @@ impl TrainOptions {
             eval_csv: beside(".eval.csv"),
             checkpoint_dir: beside(".ckpt"),
             checkpoint_every: Duration::from_secs(120),
+            checkpoint_replay: true,
             eval_every: 10_000,
             eval_episodes: 5,
             value_episodes: 50,
@@ -195,6 +204,8 @@ pub struct Trainer {
     pub progress: Progress,
     policy: Arc<Policy>,
     agent: Option<PlanAgent>,
+    /// Transitions restored from the checkpoint's replay buffer on resume.
+    pub restored_transitions: Option<usize>,
 }
 
 fn append(path: &Path, header: &str) -> anyhow::Result<File> {
@@ -264,6 +275,7 @@ impl Trainer {
             seconds: 0.0,
         };
         let resumed = resume && checkpoint::exists(&options.checkpoint_dir);
+        let mut buffer = None;
         if resumed {
             let saved = checkpoint::load(&options.checkpoint_dir, &mut sac, &mut model)?;
             if saved.options.domain != options.domain {
@@ -275,6 +287,12 @@ impl Trainer {
                 );
             }
             progress = saved.progress;
+            buffer =
+                checkpoint::load_replay(&options.checkpoint_dir, od, ad, options.sac.buffer_size)?;
+            if buffer.is_some() {
+                // The data the learner had: no refill before learning goes on.
+                progress.fresh_steps = warmup_steps(&options.sac);
+            }
             truncate_csv(&options.csv, progress.step)?;
             truncate_csv(&options.eval_csv, progress.step)?;
         } else {
@@ -295,8 +313,10 @@ impl Trainer {
             rng: ChaCha8Rng::seed_from_u64(options.seed.wrapping_add(progress.step) ^ 0x91a7),
             epsilon: 0.0,
         });
+        let restored_transitions = buffer.as_ref().map(ReplayBuffer::len);
         Ok(Trainer {
-            buffer: ReplayBuffer::new(od, ad, options.sac.buffer_size),
+            buffer: buffer.unwrap_or_else(|| ReplayBuffer::new(od, ad, options.sac.buffer_size)),
+            restored_transitions,
             eval_env: domains::make(&options.domain).expect("the domain exists"),
             env,
             spec,
@@ -311,12 +331,8 @@ impl Trainer {
     }
 
     fn learning(&self) -> bool {
-        let warm = self
-            .options
-            .sac
-            .learning_starts
-            .max(self.options.sac.batch_size as u64);
-        self.progress.fresh_steps >= warm && self.buffer.len() >= self.options.sac.batch_size
+        self.progress.fresh_steps >= warmup_steps(&self.options.sac)
+            && self.buffer.len() >= self.options.sac.batch_size
     }
 
     /// Runs to `options.steps`, then writes the bundle; returns the report.
@@ -553,6 +569,7 @@ impl Trainer {
             },
             &self.sac,
             &self.model,
+            self.options.checkpoint_replay.then_some(&self.buffer),
         )
     }
 
@@ -615,6 +632,11 @@ impl Trainer {
             out: self.options.out.clone(),
         })
     }
+}
+
+/// Steps a run (or a resumed run without its buffer) collects before it learns.
+fn warmup_steps(config: &SacConfig) -> u64 {
+    config.learning_starts.max(config.batch_size as u64)
 }
 
 fn push_recent(values: &mut Vec<f64>, value: f64) {

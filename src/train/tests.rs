@@ -233,7 +233,28 @@ fn a_checkpoint_restores_the_exact_learner() {
         progress: Trainer::new(options.clone(), false).unwrap().progress,
     };
     let ckpt = dir.path().join("ckpt");
-    super::checkpoint::save(&ckpt, &saved, &sac, &model).unwrap();
+    let mut buffer = super::buffer::ReplayBuffer::new(od, ad, 100);
+    for k in 0..n {
+        buffer.push(
+            &b.obs[k * od..(k + 1) * od],
+            &b.actions[k * ad..(k + 1) * ad],
+            b.rewards[k],
+            &b.next_obs[k * od..(k + 1) * od],
+            b.dones[k] != 0.0,
+        );
+    }
+    let without_buffer = dir.path().join("without-buffer");
+    super::checkpoint::save(&without_buffer, &saved, &sac, &model, None).unwrap();
+    assert!(
+        super::checkpoint::load_replay(&without_buffer, od, ad, 100)
+            .unwrap()
+            .is_none()
+    );
+    super::checkpoint::save(&ckpt, &saved, &sac, &model, Some(&buffer)).unwrap();
+    let restored_buffer = super::checkpoint::load_replay(&ckpt, od, ad, 100)
+        .unwrap()
+        .unwrap();
+    assert_eq!(restored_buffer.transitions(), buffer.transitions());
     // A learner from another seed, restored from the checkpoint, takes the same next step
     // (the Adam moments came back with their parameters).
     let mut other_rng = ChaCha8Rng::seed_from_u64(99);
