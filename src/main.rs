@@ -82,7 +82,8 @@ enum Command {
     Train(Box<prac::cli::train::TrainArgs>),
     /// (Re)train a bundle's dynamics model from recorded transitions (obs, action, next_obs).
     FitModel(prac::cli::train::FitArgs),
-    /// SAC updates/s ([256, 256], batch 256), model updates/s and env steps/s while training.
+    /// SAC updates/s ([256, 256], batch 256), model updates/s, env steps/s while training, and
+    /// the replay buffer's checkpoint save and load times.
     BenchTrain {
         /// Seconds measured per update kind.
         #[arg(long, default_value_t = 3.0)]
@@ -93,6 +94,10 @@ enum Command {
         /// Steps of the short training run.
         #[arg(long, default_value_t = 2000)]
         steps: u64,
+        /// Transitions (Humanoid-sized) in the replay buffer whose checkpoint save and load are
+        /// timed; 0 skips it.
+        #[arg(long, default_value_t = 1_000_000)]
+        replay_transitions: usize,
     },
     /// Microseconds per Replan for Hopper-sized networks at plan lengths 1, 8, 32, alone and
     /// batched across sessions, against the machine's matmul rate.
@@ -188,8 +193,14 @@ fn main() -> ExitCode {
             seconds,
             domain,
             steps,
-        } => prac::train::bench::run(Duration::from_secs_f64(seconds), &domain, steps)
-            .map(|b| print!("{}", prac::train::bench::report(&b))),
+            replay_transitions,
+        } => prac::train::bench::run(
+            Duration::from_secs_f64(seconds),
+            &domain,
+            steps,
+            replay_transitions,
+        )
+        .map(|b| print!("{}", prac::train::bench::report(&b))),
         Command::BenchReplan {
             seconds,
             lengths,

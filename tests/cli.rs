@@ -103,3 +103,32 @@ fn evaluate_plays_a_bundle_against_random_actions() {
             .contains("--episodes")
     );
 }
+
+#[test]
+fn bench_train_times_updates_a_short_run_and_the_replay_checkpoint() {
+    let out = prac(&[
+        "bench-train",
+        "--seconds",
+        "0.01",
+        "--domain",
+        "pendulum",
+        "--steps",
+        "1050",
+        "--replay-transitions",
+        "2000",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = String::from_utf8_lossy(&out.stdout);
+    for line in [
+        "SAC update",
+        "dynamics model update",
+        "training pendulum for 1050 steps",
+        "replay buffer in a checkpoint (2000 transitions, obs 44 / action 17)",
+    ] {
+        assert!(text.contains(line), "no '{line}' in:\n{text}");
+    }
+}

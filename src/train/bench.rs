@@ -1,5 +1,6 @@
 //! `prac bench-train`: SAC updates per second ([256, 256], batch 256, Hopper's sizes), model
-//! updates per second, and env steps per second of a real training run.
+//! updates per second, env steps per second of a real training run, and how long a checkpoint
+//! takes to save and load a full replay buffer.
 
 use std::time::{Duration, Instant};
 
@@ -7,6 +8,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
+use super::buffer::ReplayBuffer;
 use super::model::ModelTrainer;
 use super::run::{TrainOptions, Trainer};
 use super::sac::{Batch, Sac, SacConfig};
@@ -17,6 +19,46 @@ pub struct BenchTrain {
     pub train_domain: String,
     pub train_steps: u64,
     pub train_steps_per_s: f64,
+    pub replay: Option<ReplayTiming>,
+}
+
+/// Saving and loading a replay buffer as checkpoints do.
+pub struct ReplayTiming {
+    pub transitions: usize,
+    pub bytes: u64,
+    pub save_ms: f64,
+    pub load_ms: f64,
+}
+
+/// Humanoid's observation and action sizes: the largest buffer of our domains.
+const REPLAY_DIMS: (usize, usize) = (44, 17);
+
+fn time_replay(dir: &std::path::Path, transitions: usize) -> anyhow::Result<ReplayTiming> {
+    let (od, ad) = REPLAY_DIMS;
+    let mut rng = ChaCha8Rng::seed_from_u64(8);
+    let mut buffer = ReplayBuffer::new(od, ad, transitions);
+    let (mut obs, mut action, mut next_obs) = (vec![0.0; od], vec![0.0; ad], vec![0.0; od]);
+    for _ in 0..transitions {
+        for v in obs.iter_mut().chain(&mut action).chain(&mut next_obs) {
+            *v = rng.random_range(-1.0..1.0);
+        }
+        buffer.push(&obs, &action, rng.random_range(-1.0..1.0), &next_obs, false);
+    }
+    let path = dir.join(super::checkpoint::REPLAY_FILE);
+    let start = Instant::now();
+    buffer.save(&path)?;
+    let save_ms = start.elapsed().as_secs_f64() * 1e3;
+    drop(buffer);
+    let start = Instant::now();
+    let loaded = ReplayBuffer::load(&path, od, ad, transitions)?;
+    let load_ms = start.elapsed().as_secs_f64() * 1e3;
+    anyhow::ensure!(loaded.len() == transitions, "the buffer came back short");
+    Ok(ReplayTiming {
+        transitions,
+        bytes: std::fs::metadata(&path)?.len(),
+        save_ms,
+        load_ms,
+    })
 }
 
 fn random_batch(rng: &mut ChaCha8Rng, n: usize, od: usize, ad: usize) -> Batch {
@@ -34,7 +76,13 @@ fn random_batch(rng: &mut ChaCha8Rng, n: usize, od: usize, ad: usize) -> Batch {
 
 /// Times updates for `per_case` each, then trains `domain` for `train_steps` steps (learning
 /// after `learning_starts` = 1000 steps) and reports its overall env steps/s.
-pub fn run(per_case: Duration, domain: &str, train_steps: u64) -> anyhow::Result<BenchTrain> {
+/// Then saves and loads a replay buffer of `replay_transitions` (0: skipped).
+pub fn run(
+    per_case: Duration,
+    domain: &str,
+    train_steps: u64,
+    replay_transitions: usize,
+) -> anyhow::Result<BenchTrain> {
     let (od, ad, n) = (15, 3, 256);
     let mut rng = ChaCha8Rng::seed_from_u64(7);
     let mut sac = Sac::new(SacConfig::default(), od, ad, &mut rng);
@@ -81,13 +129,19 @@ pub fn run(per_case: Duration, domain: &str, train_steps: u64) -> anyhow::Result
     let mut trainer = Trainer::new(options, false)?;
     trainer.run()?;
     let seconds = start.elapsed().as_secs_f64();
+    drop(trainer);
+    let replay = (replay_transitions > 0)
+        .then(|| time_replay(&dir, replay_transitions))
+        .transpose();
     let _ = std::fs::remove_dir_all(&dir);
+    let replay = replay?;
     Ok(BenchTrain {
         sac_update_ms,
         model_update_ms,
         train_domain: domain.to_string(),
         train_steps,
         train_steps_per_s: train_steps as f64 / seconds,
+        replay,
     })
 }
 
@@ -98,7 +152,7 @@ fn tempfile_dir() -> anyhow::Result<std::path::PathBuf> {
 }
 
 pub fn report(b: &BenchTrain) -> String {
-    format!(
+    let mut text = format!(
         "SAC update ([256, 256] actor and twin critics, batch 256, Hopper sizes 15/3): {:.2} ms ({:.0} updates/s)\n\
          dynamics model update (4 x 64, batch 256): {:.2} ms ({:.0} updates/s)\n\
          training {} for {} steps (1000 random, then an update and a model step per env step): {:.0} env steps/s\n",
@@ -109,5 +163,16 @@ pub fn report(b: &BenchTrain) -> String {
         b.train_domain,
         b.train_steps,
         b.train_steps_per_s,
-    )
+    );
+    if let Some(r) = &b.replay {
+        let (od, ad) = REPLAY_DIMS;
+        text.push_str(&format!(
+            "replay buffer in a checkpoint ({} transitions, obs {od} / action {ad}): {:.0} MB, save {:.0} ms, load {:.0} ms\n",
+            r.transitions,
+            r.bytes as f64 / 1e6,
+            r.save_ms,
+            r.load_ms,
+        ));
+    }
+    text
 }
