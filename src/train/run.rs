@@ -111,7 +111,8 @@ pub struct Progress {
     pub step: u64,
     pub episode: u64,
     pub gradient_steps: u64,
-    /// Steps taken since this process started (or resumed): learning waits for a refilled buffer.
+    /// Transitions in the buffer since this process started: those it collected plus those
+    /// restored from the checkpoint. Learning waits until they cover the warm-up.
     #[serde(skip)]
     pub fresh_steps: u64,
     pub v_rand: Option<f64>,
@@ -289,10 +290,10 @@ impl Trainer {
             progress = saved.progress;
             buffer =
                 checkpoint::load_replay(&options.checkpoint_dir, od, ad, options.sac.buffer_size)?;
-            if buffer.is_some() {
-                // The data the learner had: no refill before learning goes on.
-                progress.fresh_steps = warmup_steps(&options.sac);
-            }
+            // The restored transitions count toward the warm-up: a full buffer learns on at
+            // once, a checkpoint taken during warm-up (or after a refill began) finishes it.
+            let restored = buffer.as_ref().map_or(0, |b| b.len() as u64);
+            progress.fresh_steps = restored.min(warmup_steps(&options.sac));
             truncate_csv(&options.csv, progress.step)?;
             truncate_csv(&options.eval_csv, progress.step)?;
         } else {

@@ -274,6 +274,40 @@ fn a_checkpoint_restores_the_exact_learner() {
 }
 
 #[test]
+fn a_resume_counts_the_restored_transitions_toward_the_warm_up() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut options = TrainOptions::new("pendulum", &dir.path().join("p.safetensors"));
+    options.eval_every = 1_000_000;
+    options.eval_episodes = 1;
+    options.value_episodes = 1;
+    options.progress = false;
+    let warmup = options
+        .sac
+        .learning_starts
+        .max(options.sac.batch_size as u64);
+    let resumed_after = |steps: u64| {
+        let mut options = options.clone();
+        options.steps = steps;
+        let mut trainer = Trainer::new(options.clone(), false).unwrap();
+        trainer.run().unwrap();
+        trainer.checkpoint().unwrap();
+        options.steps = steps + 100;
+        let resumed = Trainer::new(options, true).unwrap();
+        (resumed.restored_transitions, resumed.progress.fresh_steps)
+    };
+    // A checkpoint from inside the warm-up finishes it rather than learning from a few samples.
+    assert_eq!(
+        resumed_after(warmup / 4),
+        (Some(warmup as usize / 4), warmup / 4)
+    );
+    // One past it learns on at once.
+    assert_eq!(
+        resumed_after(warmup + 10),
+        (Some(warmup as usize + 10), warmup)
+    );
+}
+
+#[test]
 fn exported_networks_compute_what_the_learner_computes() {
     let mut rng = ChaCha8Rng::seed_from_u64(6);
     let spec = domains::make("pendulum").unwrap().spec().clone();
