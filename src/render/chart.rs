@@ -46,6 +46,76 @@ fn range(values: impl Iterator<Item = f64>) -> (f64, f64) {
     (lo - pad, hi + pad)
 }
 
+/// A short tick label: 150000 -> "150k", 2500000 -> "2.5M", 0.0100 -> "0.01", so that the
+/// labels of a training-steps axis do not run into each other.
+fn tick_label(v: &f64) -> String {
+    let trim = |x: f64| {
+        let s = format!("{x:.3}");
+        s.trim_end_matches('0').trim_end_matches('.').to_string()
+    };
+    let mag = v.abs();
+    if mag >= 1e6 {
+        format!("{}M", trim(v / 1e6))
+    } else if mag >= 1e3 {
+        format!("{}k", trim(v / 1e3))
+    } else if mag >= 1.0 || mag == 0.0 {
+        trim(*v)
+    } else {
+        let s = format!("{v:.6}");
+        s.trim_end_matches('0').trim_end_matches('.').to_string()
+    }
+}
+
+/// Where the legend covers the least of the lines: the candidate spots are the corners and
+/// the edges' middles, each a box of 30% of both axes; each line is sampled along its
+/// segments, so a line with few points still counts where it runs.
+fn emptiest_spot(
+    lines: &[Vec<(f64, f64)>],
+    (x0, x1): (f64, f64),
+    (y0, y1): (f64, f64),
+) -> SeriesLabelPosition {
+    use SeriesLabelPosition::*;
+    const LOW: (f64, f64) = (0.0, 0.3);
+    const MID: (f64, f64) = (0.35, 0.65);
+    const HIGH: (f64, f64) = (0.7, 1.0);
+    let spots = [
+        (UpperRight, HIGH, HIGH),
+        (LowerRight, HIGH, LOW),
+        (UpperLeft, LOW, HIGH),
+        (LowerLeft, LOW, LOW),
+        (MiddleRight, HIGH, MID),
+        (MiddleLeft, LOW, MID),
+        (UpperMiddle, MID, HIGH),
+        (LowerMiddle, MID, LOW),
+    ];
+    const SAMPLES_PER_SEGMENT: usize = 16;
+    let samples: Vec<(f64, f64)> = lines
+        .iter()
+        .flat_map(|line| {
+            line.windows(2).flat_map(|w| {
+                let ((ax, ay), (bx, by)) = (w[0], w[1]);
+                (0..SAMPLES_PER_SEGMENT).map(move |k| {
+                    let f = k as f64 / SAMPLES_PER_SEGMENT as f64;
+                    (ax + f * (bx - ax), ay + f * (by - ay))
+                })
+            })
+        })
+        .chain(lines.iter().filter_map(|line| line.last().copied()))
+        .map(|(x, y)| ((x - x0) / (x1 - x0), (y - y0) / (y1 - y0)))
+        .collect();
+    let inside = |t: f64, (lo, hi): (f64, f64)| t >= lo && t <= hi;
+    spots
+        .into_iter()
+        .min_by_key(|&(_, xs, ys)| {
+            samples
+                .iter()
+                .filter(|&&(tx, ty)| inside(tx, xs) && inside(ty, ys))
+                .count()
+        })
+        .map(|(spot, _, _)| spot)
+        .unwrap_or(UpperRight)
+}
+
 /// Draws the panels in a row into a PNG of `width` x `height`.
 pub fn line_panels(
     path: &Path,
@@ -71,6 +141,8 @@ pub fn line_panels(
             .configure_mesh()
             .x_desc(panel.x_label.as_str())
             .y_desc(panel.y_label.as_str())
+            .x_label_formatter(&tick_label)
+            .y_label_formatter(&tick_label)
             .label_style((FONT_FAMILY, 13))
             .draw()
             .map_err(err)?;
@@ -105,8 +177,14 @@ pub fn line_panels(
                     .map_err(err)?;
             }
         }
+        let lines: Vec<Vec<(f64, f64)>> = panel
+            .series
+            .iter()
+            .map(|s| s.points.iter().map(|p| (p.0, p.1)).collect())
+            .collect();
         chart
             .configure_series_labels()
+            .position(emptiest_spot(&lines, (x0, x1), (y0, y1)))
             .label_font((FONT_FAMILY, 13))
             .background_style(WHITE.mix(0.8))
             .border_style(BLACK)
@@ -116,4 +194,38 @@ pub fn line_panels(
     root.present()
         .with_context(|| format!("writing {}", path.display()))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{SeriesLabelPosition, emptiest_spot, tick_label};
+
+    #[test]
+    fn tick_labels_are_short() {
+        assert_eq!(tick_label(&150000.0), "150k");
+        assert_eq!(tick_label(&2_500_000.0), "2.5M");
+        assert_eq!(tick_label(&-250.0), "-250");
+        assert_eq!(tick_label(&0.0), "0");
+        assert_eq!(tick_label(&0.01), "0.01");
+        assert_eq!(tick_label(&0.0005), "0.0005");
+        assert_eq!(tick_label(&12.5), "12.5");
+        assert_eq!(tick_label(&0.9999999), "1");
+    }
+
+    #[test]
+    fn the_legend_goes_where_no_line_runs() {
+        let range = (0.0, 100.0);
+        // Two points a line apart still count along the segment between them.
+        let rising = vec![(0.0, 0.0), (100.0, 100.0)];
+        let flat_low = vec![(0.0, 2.0), (100.0, 2.0)];
+        let spot = emptiest_spot(&[rising, flat_low], range, range);
+        assert!(matches!(spot, SeriesLabelPosition::UpperLeft), "{spot:?}");
+        // Lines along the top and the bottom leave only the middles free; a falling one takes
+        // the middle right.
+        let top = vec![(0.0, 98.0), (100.0, 98.0)];
+        let bottom = vec![(0.0, 2.0), (100.0, 2.0)];
+        let falling = vec![(0.0, 100.0), (50.0, 100.0), (100.0, 50.0)];
+        let spot = emptiest_spot(&[top, bottom, falling], range, range);
+        assert!(matches!(spot, SeriesLabelPosition::MiddleLeft), "{spot:?}");
+    }
 }
