@@ -55,28 +55,29 @@ fn range(values: impl Iterator<Item = f64>) -> (f64, f64) {
 /// A short tick label: 150000 -> "150k", 2500000 -> "2.5M", 0.0100 -> "0.01", so that the
 /// labels of a training-steps axis do not run into each other.
 fn tick_label(v: &f64) -> String {
-    let trim = |x: f64| {
-        let s = format!("{x:.3}");
-        s.trim_end_matches('0').trim_end_matches('.').to_string()
+    let (scaled, suffix) = match v.abs() {
+        m if m >= 1e6 => (v / 1e6, "M"),
+        m if m >= 1e3 => (v / 1e3, "k"),
+        _ => (*v, ""),
     };
-    let mag = v.abs();
-    if mag >= 1e6 {
-        format!("{}M", trim(v / 1e6))
-    } else if mag >= 1e3 {
-        format!("{}k", trim(v / 1e3))
-    } else if mag >= 1.0 || mag == 0.0 {
-        trim(*v)
+    // Small fractions (eps coefficients) need more places than the rest.
+    let places = if scaled.abs() >= 1.0 || scaled == 0.0 {
+        3
     } else {
-        let s = format!("{v:.6}");
-        s.trim_end_matches('0').trim_end_matches('.').to_string()
-    }
+        6
+    };
+    let text = format!("{scaled:.places$}");
+    format!(
+        "{}{suffix}",
+        text.trim_end_matches('0').trim_end_matches('.')
+    )
 }
 
 /// Where the legend covers the least of the lines: the candidate spots are the corners and
 /// the edges' middles, each a box of 30% of both axes; each line is sampled along its
 /// segments, so a line with few points still counts where it runs.
 fn emptiest_spot(
-    lines: &[Vec<(f64, f64)>],
+    series: &[Series],
     (x0, x1): (f64, f64),
     (y0, y1): (f64, f64),
 ) -> SeriesLabelPosition {
@@ -95,18 +96,22 @@ fn emptiest_spot(
         (LowerMiddle, MID, LOW),
     ];
     const SAMPLES_PER_SEGMENT: usize = 16;
-    let samples: Vec<(f64, f64)> = lines
+    let samples: Vec<(f64, f64)> = series
         .iter()
         .flat_map(|line| {
-            line.windows(2).flat_map(|w| {
-                let ((ax, ay), (bx, by)) = (w[0], w[1]);
+            line.points.windows(2).flat_map(|w| {
+                let ((ax, ay, _), (bx, by, _)) = (w[0], w[1]);
                 (0..SAMPLES_PER_SEGMENT).map(move |k| {
                     let f = k as f64 / SAMPLES_PER_SEGMENT as f64;
                     (ax + f * (bx - ax), ay + f * (by - ay))
                 })
             })
         })
-        .chain(lines.iter().filter_map(|line| line.last().copied()))
+        .chain(
+            series
+                .iter()
+                .filter_map(|line| line.points.last().map(|p| (p.0, p.1))),
+        )
         .map(|(x, y)| ((x - x0) / (x1 - x0), (y - y0) / (y1 - y0)))
         .collect();
     let inside = |t: f64, (lo, hi): (f64, f64)| t >= lo && t <= hi;
@@ -183,14 +188,9 @@ pub fn line_panels(
                     .map_err(err)?;
             }
         }
-        let lines: Vec<Vec<(f64, f64)>> = panel
-            .series
-            .iter()
-            .map(|s| s.points.iter().map(|p| (p.0, p.1)).collect())
-            .collect();
         chart
             .configure_series_labels()
-            .position(emptiest_spot(&lines, (x0, x1), (y0, y1)))
+            .position(emptiest_spot(&panel.series, (x0, x1), (y0, y1)))
             .label_font((FONT_FAMILY, 13))
             .background_style(WHITE.mix(0.8))
             .border_style(BLACK)
@@ -204,7 +204,7 @@ pub fn line_panels(
 
 #[cfg(test)]
 mod tests {
-    use super::{SeriesLabelPosition, emptiest_spot, tick_label};
+    use super::{Series, SeriesLabelPosition, emptiest_spot, tick_label};
 
     #[test]
     fn tick_labels_are_short() {
@@ -218,19 +218,27 @@ mod tests {
         assert_eq!(tick_label(&0.9999999), "1");
     }
 
+    /// A line through the given (x, y) points, with no band.
+    fn line(points: &[(f64, f64)]) -> Series {
+        Series {
+            name: String::new(),
+            points: points.iter().map(|&(x, y)| (x, y, 0.0)).collect(),
+        }
+    }
+
     #[test]
     fn the_legend_goes_where_no_line_runs() {
         let range = (0.0, 100.0);
         // Two points a line apart still count along the segment between them.
-        let rising = vec![(0.0, 0.0), (100.0, 100.0)];
-        let flat_low = vec![(0.0, 2.0), (100.0, 2.0)];
+        let rising = line(&[(0.0, 0.0), (100.0, 100.0)]);
+        let flat_low = line(&[(0.0, 2.0), (100.0, 2.0)]);
         let spot = emptiest_spot(&[rising, flat_low], range, range);
         assert!(matches!(spot, SeriesLabelPosition::UpperLeft), "{spot:?}");
         // Lines along the top and the bottom leave only the middles free; a falling one takes
         // the middle right.
-        let top = vec![(0.0, 98.0), (100.0, 98.0)];
-        let bottom = vec![(0.0, 2.0), (100.0, 2.0)];
-        let falling = vec![(0.0, 100.0), (50.0, 100.0), (100.0, 50.0)];
+        let top = line(&[(0.0, 98.0), (100.0, 98.0)]);
+        let bottom = line(&[(0.0, 2.0), (100.0, 2.0)]);
+        let falling = line(&[(0.0, 100.0), (50.0, 100.0), (100.0, 50.0)]);
         let spot = emptiest_spot(&[top, bottom, falling], range, range);
         assert!(matches!(spot, SeriesLabelPosition::MiddleLeft), "{spot:?}");
     }
