@@ -74,7 +74,9 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
-    /// Training curves (return and forecast against steps) from `prac train` CSVs.
+    /// Training curves (return and forecast against steps) from `prac train` CSVs: every run
+    /// into DIR/curves.png and, where NAME.train.csv and NAME-seedK.train.csv are seeds of one
+    /// setting, their mean and std across seeds into DIR/curves-seeds.png.
     Curves {
         #[arg(long, value_delimiter = ',', required = true)]
         csv: Vec<PathBuf>,
@@ -116,8 +118,11 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
     } = &cli.command
     {
         let normalize = normalize.as_deref().map(parse_pair).transpose()?;
-        print!("{}", curves::write(csv, normalize, out)?);
-        println!("wrote {}", out.join("curves.png").display());
+        let (summary, written) = curves::write(csv, normalize, out)?;
+        print!("{summary}");
+        for path in written {
+            println!("wrote {}", path.display());
+        }
         return Ok(());
     }
     let local = match &cli.server {

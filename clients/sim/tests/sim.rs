@@ -163,6 +163,49 @@ fn sweep_writes_sane_files_and_curves_draw() {
             .unwrap()
             .starts_with(b"\x89PNG")
     );
+    assert!(
+        !dir.path().join("curves-seeds.png").exists(),
+        "one seed has no mean across seeds"
+    );
+
+    // A second seed of the same setting (a shifted copy) adds the mean across seeds.
+    let shipped = std::fs::read_to_string(root().join("bundles/pendulum.train.csv")).unwrap();
+    let mut lines = shipped.lines();
+    let header = lines.next().unwrap();
+    let ret = header.split(',').position(|h| h == "return").unwrap();
+    let mut shifted = format!("{header}\n");
+    for line in lines {
+        let mut fields: Vec<String> = line.split(',').map(str::to_string).collect();
+        fields[ret] = (fields[ret].parse::<f64>().unwrap() + 100.0).to_string();
+        shifted.push_str(&fields.join(","));
+        shifted.push('\n');
+    }
+    let seed1 = dir.path().join("pendulum-seed1.train.csv");
+    std::fs::write(&seed1, shifted).unwrap();
+    let seeds = sim(&[
+        "curves",
+        "--csv",
+        &format!(
+            "{},{}",
+            root().join("bundles/pendulum.train.csv").display(),
+            seed1.display()
+        ),
+        "--out",
+        dir.path().to_str().unwrap(),
+    ]);
+    let stdout = String::from_utf8_lossy(&seeds.stdout);
+    assert!(seeds.status.success(), "{stdout}");
+    let summary = stdout
+        .lines()
+        .find(|l| l.starts_with("pendulum: 2 seeds"))
+        .unwrap_or_else(|| panic!("no mean across seeds in {stdout}"));
+    // The two seeds differ by 100 everywhere: their mean's std across seeds is 50.
+    assert!(summary.contains("+- 50.000 across seeds"), "{summary}");
+    assert!(
+        std::fs::read(dir.path().join("curves-seeds.png"))
+            .unwrap()
+            .starts_with(b"\x89PNG")
+    );
 }
 
 #[test]
