@@ -21,10 +21,10 @@ pub struct Panel {
     pub series: Vec<Series>,
 }
 
-/// Ten distinct colours (matplotlib's tab10), so that a Figure 4 with two seeds of four
-/// settings repeats none.
+/// Twelve distinct colours (matplotlib's tab10, then black and a dark magenta), so that a
+/// Figure 4 with three seeds of four settings repeats none.
 fn color(i: usize) -> RGBColor {
-    const PALETTE: [RGBColor; 10] = [
+    const PALETTE: [RGBColor; 12] = [
         RGBColor(31, 119, 180),
         RGBColor(214, 39, 40),
         RGBColor(44, 160, 44),
@@ -35,6 +35,8 @@ fn color(i: usize) -> RGBColor {
         RGBColor(127, 127, 127),
         RGBColor(188, 189, 34),
         RGBColor(23, 190, 207),
+        RGBColor(0, 0, 0),
+        RGBColor(153, 0, 76),
     ];
     PALETTE[i % PALETTE.len()]
 }
@@ -204,7 +206,16 @@ pub fn line_panels(
 
 #[cfg(test)]
 mod tests {
-    use super::{Series, SeriesLabelPosition, emptiest_spot, tick_label};
+    use super::{Series, SeriesLabelPosition, color, emptiest_spot, tick_label};
+    use plotters::prelude::Color;
+
+    #[test]
+    fn three_seeds_of_four_settings_get_twelve_colours() {
+        let colours: Vec<_> = (0..12).map(|i| color(i).rgb()).collect();
+        for (i, a) in colours.iter().enumerate() {
+            assert!(!colours[..i].contains(a), "colour {i} repeats");
+        }
+    }
 
     #[test]
     fn tick_labels_are_short() {
