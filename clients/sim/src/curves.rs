@@ -78,7 +78,7 @@ const SEED_GRID_POINTS: f64 = 500.0;
 /// Mean and std across runs (one per seed) of their rolling means, on an even grid over the
 /// steps all of them have reached: each run contributes its latest point at or before a grid
 /// step. The std is the population std, so two seeds' band spans exactly the two runs.
-pub fn across_seeds(runs: &[Vec<(f64, f64, f64)>]) -> Vec<(f64, f64, f64)> {
+pub fn across_seeds(runs: &[&[(f64, f64, f64)]]) -> Vec<(f64, f64, f64)> {
     if runs.is_empty() || runs.iter().any(|r| r.is_empty()) {
         return Vec::new();
     }
@@ -107,10 +107,10 @@ pub fn across_seeds(runs: &[Vec<(f64, f64, f64)>]) -> Vec<(f64, f64, f64)> {
     }
 }
 
-/// One run's rolling curves.
-struct Run {
+/// One line of Figure 4: a run's rolling curves (one point per episode), or a setting's mean
+/// across seeds.
+struct Line {
     name: String,
-    rows: usize,
     returns: Vec<(f64, f64, f64)>,
     forecasts: Vec<(f64, f64, f64)>,
 }
@@ -140,9 +140,8 @@ pub fn write(
                     .to_string()
             })
             .unwrap_or_default();
-        runs.push(Run {
+        runs.push(Line {
             name,
-            rows: rows.len(),
             returns: rolling(&rows, |r| scale(r.1)),
             forecasts: rolling(&rows, |r| r.2),
         });
@@ -153,7 +152,7 @@ pub fn write(
         summary.push_str(&format!(
             "{}: {} episodes to step {}; last {WINDOW}: return {:.3} +- {:.3}, forecast {:.2}\n",
             run.name,
-            run.rows,
+            run.returns.len(),
             last.0,
             last.1,
             last.2,
@@ -166,16 +165,10 @@ pub fn write(
         "episode return"
     };
     let every_run = dir.join("curves.png");
-    draw(
-        &every_run,
-        runs.iter()
-            .map(|r| (r.name.clone(), r.returns.clone(), r.forecasts.clone()))
-            .collect(),
-        y,
-    )?;
+    draw(&every_run, &runs, y)?;
     let mut written = vec![every_run];
 
-    let mut settings: Vec<(&str, Vec<&Run>)> = Vec::new();
+    let mut settings: Vec<(&str, Vec<&Line>)> = Vec::new();
     for run in &runs {
         let setting = setting_of(&run.name);
         match settings.iter_mut().find(|(s, _)| *s == setting) {
@@ -186,14 +179,9 @@ pub fn write(
     if settings.iter().any(|(_, seeds)| seeds.len() > 1) {
         let mut lines = Vec::new();
         for (setting, seeds) in &settings {
-            let returns =
-                across_seeds(&seeds.iter().map(|r| r.returns.clone()).collect::<Vec<_>>());
-            let forecasts = across_seeds(
-                &seeds
-                    .iter()
-                    .map(|r| r.forecasts.clone())
-                    .collect::<Vec<_>>(),
-            );
+            let returns = across_seeds(&seeds.iter().map(|r| &r.returns[..]).collect::<Vec<_>>());
+            let forecasts =
+                across_seeds(&seeds.iter().map(|r| &r.forecasts[..]).collect::<Vec<_>>());
             let last = returns.last().copied().unwrap_or_default();
             summary.push_str(&format!(
                 "{setting}: {} seeds to step {}; mean of their last-{WINDOW} returns {:.3} +- {:.3} across seeds, forecast {:.2}\n",
@@ -203,34 +191,34 @@ pub fn write(
                 last.2,
                 forecasts.last().map_or(0.0, |f| f.1)
             ));
-            let label = match seeds.len() {
+            let name = match seeds.len() {
                 1 => format!("{setting} (1 seed)"),
                 n => format!("{setting} ({n} seeds)"),
             };
-            lines.push((label, returns, forecasts));
+            lines.push(Line {
+                name,
+                returns,
+                forecasts,
+            });
         }
         let by_setting = dir.join("curves-seeds.png");
-        draw(&by_setting, lines, &format!("{y}, mean across seeds"))?;
+        draw(&by_setting, &lines, &format!("{y}, mean across seeds"))?;
         written.push(by_setting);
     }
     Ok((summary, written))
 }
 
-/// The return and forecast panels of Figure 4, one line per (name, returns, forecasts).
-#[allow(clippy::type_complexity)]
-fn draw(
-    path: &Path,
-    lines: Vec<(String, Vec<(f64, f64, f64)>, Vec<(f64, f64, f64)>)>,
-    y_label: &str,
-) -> anyhow::Result<()> {
-    let (mut returns, mut forecasts) = (Vec::new(), Vec::new());
-    for (name, ret, fc) in lines {
-        returns.push(Series {
-            name: name.clone(),
-            points: ret,
-        });
-        forecasts.push(Series { name, points: fc });
-    }
+/// The return and forecast panels of Figure 4.
+fn draw(path: &Path, lines: &[Line], y_label: &str) -> anyhow::Result<()> {
+    let series = |points: fn(&Line) -> &Vec<(f64, f64, f64)>| {
+        lines
+            .iter()
+            .map(|l| Series {
+                name: l.name.clone(),
+                points: points(l).clone(),
+            })
+            .collect()
+    };
     line_panels(
         path,
         &[
@@ -238,13 +226,13 @@ fn draw(
                 title: "training return".into(),
                 x_label: "training steps".into(),
                 y_label: y_label.into(),
-                series: returns,
+                series: series(|l| &l.returns),
             },
             Panel {
                 title: "forecast".into(),
                 x_label: "training steps".into(),
                 y_label: "mean forecast (steps)".into(),
-                series: forecasts,
+                series: series(|l| &l.forecasts),
             },
         ],
         (1100, 450),
@@ -269,7 +257,7 @@ mod tests {
         // Seed a: 10 until step 100, then 30; seed b: 20 from step 50, ends at 200.
         let a = vec![(0.0, 10.0, 0.0), (100.0, 30.0, 0.0), (300.0, 50.0, 0.0)];
         let b = vec![(50.0, 20.0, 0.0), (200.0, 40.0, 0.0)];
-        let points = across_seeds(&[a, b]);
+        let points = across_seeds(&[&a, &b]);
         assert_eq!(
             points.first().unwrap().0,
             50.0,
@@ -293,7 +281,7 @@ mod tests {
     fn runs_that_never_overlap_have_no_mean() {
         let a = vec![(0.0, 1.0, 0.0), (10.0, 1.0, 0.0)];
         let b = vec![(20.0, 2.0, 0.0), (30.0, 2.0, 0.0)];
-        assert!(across_seeds(&[a, b]).is_empty());
+        assert!(across_seeds(&[&a, &b]).is_empty());
         assert!(across_seeds(&[]).is_empty());
     }
 }
