@@ -155,6 +155,16 @@ impl Manifest {
                     format!("{lo} is not below action_high[{i}] = {hi}"),
                 );
             }
+            // The server maps [-1, 1] onto [low, high] through high - low.
+            if !(hi - lo).is_finite() {
+                return fail(
+                    &format!("action_high[{i}]"),
+                    format!(
+                        "the range [{lo}, {hi}] is wider than f32 can hold, so actions would \
+                         not be finite; bound the action space"
+                    ),
+                );
+            }
         }
         if !(self.gamma > 0.0 && self.gamma < 1.0) {
             return fail(
@@ -205,6 +215,15 @@ impl Manifest {
             Some(scale) if !scale.v_pi.is_finite() || !scale.v_rand.is_finite() => Err((
                 "value_scale".to_string(),
                 "holds a non-finite value".to_string(),
+            )),
+            // epsilon_coef multiplies V_pi - V_rand: it must stay a finite f32 tolerance.
+            Some(scale) if (scale.v_pi - scale.v_rand).abs() > f32::MAX as f64 => Err((
+                "value_scale".to_string(),
+                format!(
+                    "V_pi - V_rand = {} - {} is beyond f32's range; expected values in return \
+                     units",
+                    scale.v_pi, scale.v_rand
+                ),
             )),
             _ => Ok(()),
         }

@@ -51,24 +51,237 @@ pub fn content_hash(bytes: &[u8]) -> String {
     format!("sha256:{}", hex::encode(Sha256::digest(bytes)))
 }
 
-/// Reads, validates and builds a policy from a bundle file.
+/// Largest safetensors header read: a manifest and the tensor index take a few KB.
+pub const MAX_HEADER_BYTES: u64 = 16 << 20;
+
+/// Reads, validates and builds a policy from a bundle file. The file must be a regular file; its
+/// header (manifest and tensor index) is read and checked against the file's size before the
+/// tensors are, so a huge or sparse file costs a few KB of reading, not its size.
 pub fn load(path: &Path) -> Result<Policy, BundleError> {
     let err = |field: &str, reason: String| BundleError {
         file: path.to_path_buf(),
         field: field.to_string(),
         reason,
     };
-    let size = std::fs::metadata(path)
-        .map_err(|e| err("file", format!("cannot read: {e}")))?
-        .len();
+    let meta = std::fs::metadata(path).map_err(|e| err("file", format!("cannot read: {e}")))?;
+    if !meta.is_file() {
+        return Err(err(
+            "file",
+            format!(
+                "is not a regular file ({}); a bundle must be one",
+                file_kind(&meta)
+            ),
+        ));
+    }
+    let size = meta.len();
     if size > MAX_BUNDLE_BYTES {
         return Err(err(
             "file",
             format!("is {size} bytes, more than the {MAX_BUNDLE_BYTES} allowed"),
         ));
     }
-    let bytes = std::fs::read(path).map_err(|e| err("file", format!("cannot read: {e}")))?;
+    let mut file =
+        std::fs::File::open(path).map_err(|e| err("file", format!("cannot read: {e}")))?;
+    check_header_of_file(&mut file, size, path)?;
+    let mut bytes = Vec::with_capacity(size as usize);
+    std::io::Read::read_to_end(&mut file, &mut bytes)
+        .map_err(|e| err("file", format!("cannot read: {e}")))?;
     from_bytes(&bytes, path)
+}
+
+fn file_kind(meta: &std::fs::Metadata) -> &'static str {
+    use std::os::unix::fs::FileTypeExt;
+    let t = meta.file_type();
+    if t.is_dir() {
+        "a directory"
+    } else if t.is_fifo() {
+        "a FIFO"
+    } else if t.is_char_device() {
+        "a character device"
+    } else if t.is_block_device() {
+        "a block device"
+    } else if t.is_socket() {
+        "a socket"
+    } else {
+        "not a file"
+    }
+}
+
+/// One tensor's entry in a safetensors header.
+#[derive(serde::Deserialize)]
+struct HeaderTensor {
+    dtype: String,
+    shape: Vec<usize>,
+    data_offsets: (u64, u64),
+}
+
+/// Reads the header from the start of `file` (leaving the file at its start) and checks the
+/// manifest and the declared tensors against each other and against the file's size.
+fn check_header_of_file(
+    file: &mut std::fs::File,
+    size: u64,
+    path: &Path,
+) -> Result<(), BundleError> {
+    use std::io::{Read, Seek};
+    let err = |field: &str, reason: String| BundleError {
+        file: path.to_path_buf(),
+        field: field.to_string(),
+        reason,
+    };
+    let header_err = |reason: String| err("safetensors header", reason);
+    let mut len = [0u8; 8];
+    file.read_exact(&mut len)
+        .map_err(|_| header_err(format!("the file has {size} bytes, too few for a header")))?;
+    let n = u64::from_le_bytes(len);
+    if n > MAX_HEADER_BYTES || n > size - 8 {
+        return Err(header_err(format!(
+            "declares {n} header bytes in a file of {size} bytes (at most {MAX_HEADER_BYTES})"
+        )));
+    }
+    let mut header = vec![0u8; n as usize];
+    file.read_exact(&mut header)
+        .map_err(|e| err("file", format!("cannot read: {e}")))?;
+    let mut entries: HashMap<String, serde_json::Value> = serde_json::from_slice(&header)
+        .map_err(|e| header_err(format!("not a valid safetensors header: {e}")))?;
+    let metadata = entries.remove("__metadata__");
+    let mut tensors = DeclaredTensors::with_capacity(entries.len());
+    let mut data_end = 0;
+    for (name, entry) in entries {
+        let info: HeaderTensor = serde_json::from_value(entry)
+            .map_err(|e| err(&name, format!("not a valid tensor entry: {e}")))?;
+        data_end = data_end.max(info.data_offsets.1);
+        tensors.insert(name, (info.dtype, info.shape));
+    }
+    if 8 + n + data_end != size {
+        return Err(header_err(format!(
+            "its tensors end at byte {} but the file has {size} bytes",
+            8 + n + data_end
+        )));
+    }
+    let manifest_json = metadata
+        .as_ref()
+        .and_then(|m| m.get(MANIFEST_KEY))
+        .and_then(serde_json::Value::as_str)
+        .ok_or_else(|| missing_manifest(path))?;
+    let manifest = parse_manifest(manifest_json, path)?;
+    check_declared_tensors(&manifest, &tensors, path)?;
+    file.rewind()
+        .map_err(|e| err("file", format!("cannot read: {e}")))?;
+    Ok(())
+}
+
+fn missing_manifest(path: &Path) -> BundleError {
+    BundleError {
+        file: path.to_path_buf(),
+        field: "__metadata__.manifest".into(),
+        reason: "missing: a prac bundle keeps its JSON manifest there".into(),
+    }
+}
+
+fn parse_manifest(json: &str, path: &Path) -> Result<Manifest, BundleError> {
+    let err = |field: &str, reason: String| BundleError {
+        file: path.to_path_buf(),
+        field: field.to_string(),
+        reason,
+    };
+    let manifest: Manifest = serde_json::from_str(json).map_err(|e| {
+        err(
+            "__metadata__.manifest",
+            format!("invalid manifest JSON: {e}"),
+        )
+    })?;
+    manifest
+        .validate()
+        .map_err(|(field, reason)| err(&format!("manifest.{field}"), reason))?;
+    Ok(manifest)
+}
+
+/// A safetensors header's tensor index: name to (dtype as safetensors spells it, shape).
+type DeclaredTensors = HashMap<String, (String, Vec<usize>)>;
+
+/// Checks one expected tensor by name and shape.
+type CheckTensor<'a> = dyn FnMut(String, &[usize]) -> Result<(), BundleError> + 'a;
+
+/// Checks that every tensor the manifest implies is declared, as F32 with its shape, and that
+/// nothing else is, before anything is allocated from the manifest's sizes: a manifest cannot
+/// declare more layers or critics than the file holds.
+fn check_declared_tensors(
+    manifest: &Manifest,
+    declared: &DeclaredTensors,
+    path: &Path,
+) -> Result<(), BundleError> {
+    let err = |field: &str, reason: String| BundleError {
+        file: path.to_path_buf(),
+        field: field.to_string(),
+        reason,
+    };
+    let mut expected: Vec<String> = Vec::with_capacity(declared.len());
+    let mut check = |name: String, shape: &[usize]| -> Result<(), BundleError> {
+        let Some((dtype, found)) = declared.get(&name) else {
+            return Err(err(
+                &name,
+                format!("missing tensor, expected shape {shape:?} f32"),
+            ));
+        };
+        if dtype != "F32" {
+            return Err(err(&name, format!("dtype {dtype}, expected F32")));
+        }
+        if found != shape {
+            return Err(err(&name, format!("shape {found:?}, expected {shape:?}")));
+        }
+        expected.push(name);
+        Ok(())
+    };
+    let chain = |check: &mut CheckTensor,
+                 prefix: &str,
+                 input: usize,
+                 hidden: &[usize],
+                 output: Option<usize>|
+     -> Result<usize, BundleError> {
+        let mut width = input;
+        for (i, &out) in hidden.iter().chain(output.as_ref()).enumerate() {
+            let (w, b) = sequential_layer(prefix, i);
+            check(w, &[out, width])?;
+            check(b, &[out])?;
+            width = out;
+        }
+        Ok(width)
+    };
+    let (obs, act) = (manifest.obs_dim, manifest.act_dim);
+    let latent = chain(&mut check, ACTOR_TRUNK, obs, &manifest.actor.hidden, None)?;
+    for head in [ACTOR_MU, ACTOR_LOG_STD] {
+        check(format!("{head}.weight"), &[act, latent])?;
+        check(format!("{head}.bias"), &[act])?;
+    }
+    // Stops at the first critic the file lacks, so n_critics = 10^9 costs one lookup.
+    for k in 0..manifest.critic.n_critics {
+        chain(
+            &mut check,
+            &critic_prefix(k),
+            obs + act,
+            &manifest.critic.hidden,
+            Some(1),
+        )?;
+    }
+    if let Some(spec) = &manifest.model {
+        chain(&mut check, MODEL_NET, obs + act, &spec.hidden, Some(obs))?;
+    }
+    if expected.len() < declared.len() {
+        let mut extra: Vec<&String> = declared
+            .keys()
+            .filter(|name| !expected.contains(name))
+            .collect();
+        extra.sort();
+        return Err(err(
+            extra[0],
+            format!(
+                "unexpected tensor ({} in all); a bundle holds only the tensors its manifest \
+                 names",
+                extra.len()
+            ),
+        ));
+    }
+    Ok(())
 }
 
 /// Validates and builds a policy from bundle bytes; `path` only names the source in errors.
@@ -88,21 +301,14 @@ pub fn from_bytes(bytes: &[u8], path: &Path) -> Result<Policy, BundleError> {
         .metadata()
         .as_ref()
         .and_then(|m| m.get(MANIFEST_KEY))
-        .ok_or_else(|| {
-            err(
-                "__metadata__.manifest",
-                "missing: a prac bundle keeps its JSON manifest there".into(),
-            )
-        })?;
-    let manifest: Manifest = serde_json::from_str(manifest_json).map_err(|e| {
-        err(
-            "__metadata__.manifest",
-            format!("invalid manifest JSON: {e}"),
-        )
-    })?;
-    manifest
-        .validate()
-        .map_err(|(field, reason)| err(&format!("manifest.{field}"), reason))?;
+        .ok_or_else(|| missing_manifest(path))?;
+    let manifest = parse_manifest(manifest_json, path)?;
+    let declared: DeclaredTensors = metadata
+        .tensors()
+        .into_iter()
+        .map(|(name, info)| (name, (format!("{:?}", info.dtype), info.shape.clone())))
+        .collect();
+    check_declared_tensors(&manifest, &declared, path)?;
     let tensors = SafeTensors::deserialize(bytes).map_err(|e| {
         err(
             "safetensors data",

@@ -165,6 +165,22 @@ fn manifest_problems_are_named() {
         (|m| m.gamma = 1.5, "manifest.gamma"),
         (|m| m.critic.n_critics = 0, "manifest.critic.n_critics"),
         (
+            |m| {
+                m.action_low = vec![-3e38; 2];
+                m.action_high = vec![3e38; 2];
+            },
+            "manifest.action_high[0]",
+        ),
+        (
+            |m| {
+                m.value_scale = Some(ValueScale {
+                    v_pi: 1.7e308,
+                    v_rand: -1.7e308,
+                })
+            },
+            "manifest.value_scale",
+        ),
+        (
             |m| m.model.as_mut().unwrap().normalization.delta_std[2] = 0.0,
             "manifest.model.normalization.delta_std[2]",
         ),
@@ -264,4 +280,90 @@ fn a_bundle_without_a_model_loads_and_cannot_imagine() {
     let mut next = [0.0; 4];
     eval.predict_next(&[0.0; 4], &[0.0; 2], &mut next);
     assert!(next.iter().all(|v| v.is_nan()));
+}
+
+#[test]
+fn sizes_a_manifest_declares_are_bounded_by_the_tensors_present() {
+    let policy = small_policy();
+    let tensors = tensors(&policy);
+    // These aborted the process (a 40 GB allocation) or panicked (capacity overflow).
+    for n_critics in [3, 1_000_000_000, 1 << 62, usize::MAX] {
+        let mut manifest = policy.manifest.clone();
+        manifest.critic.n_critics = n_critics;
+        let json = serde_json::to_string(&manifest).unwrap();
+        let e = load_error(&rebuild(&tensors, Some(&json)));
+        assert_eq!(e.field, "critic.qf2.0.weight", "{n_critics}: {e}");
+        assert!(e.reason.contains("missing tensor"), "{e}");
+    }
+    // Wider layers than the tensors hold: refused by shape, before any allocation.
+    let mut manifest = policy.manifest.clone();
+    manifest.critic.hidden = vec![1 << 40, 1 << 40];
+    let e = load_error(&rebuild(
+        &tensors,
+        Some(&serde_json::to_string(&manifest).unwrap()),
+    ));
+    assert_eq!(e.field, "critic.qf0.0.weight", "{e}");
+}
+
+#[test]
+fn tensors_the_manifest_does_not_name_are_refused() {
+    let policy = small_policy();
+    let mut tensors = tensors(&policy);
+    tensors.push(("padding".into(), vec![4], vec![0.0; 4]));
+    let json = serde_json::to_string(&policy.manifest).unwrap();
+    let e = load_error(&rebuild(&tensors, Some(&json)));
+    assert_eq!(e.field, "padding");
+    assert!(e.reason.contains("unexpected tensor"), "{e}");
+}
+
+/// Resident memory of this process, in bytes.
+fn resident_bytes() -> u64 {
+    let statm = std::fs::read_to_string("/proc/self/statm").unwrap();
+    let pages: u64 = statm.split_whitespace().nth(1).unwrap().parse().unwrap();
+    pages * 4096
+}
+
+#[test]
+fn a_file_is_checked_by_its_header_before_it_is_read() {
+    let dir = tempfile::tempdir().unwrap();
+    // A 1 GiB sparse file (the size limit): all zeros, so its header length is 0.
+    let sparse = dir.path().join("sparse.safetensors");
+    std::fs::File::create(&sparse)
+        .unwrap()
+        .set_len(MAX_BUNDLE_BYTES)
+        .unwrap();
+    let before = resident_bytes();
+    let e = load(&sparse).unwrap_err();
+    assert_eq!(e.field, "safetensors header", "{e}");
+    let grown = resident_bytes().saturating_sub(before);
+    assert!(
+        grown < 64 << 20,
+        "loading grew the process by {grown} bytes"
+    );
+
+    // A real bundle followed by junk: the header says where the tensors end.
+    let padded = dir.path().join("padded.safetensors");
+    let mut bytes = to_bytes(&small_policy()).unwrap();
+    let real = bytes.len();
+    bytes.resize(real + 4096, 0);
+    std::fs::write(&padded, &bytes).unwrap();
+    let e = load(&padded).unwrap_err();
+    assert_eq!(e.field, "safetensors header", "{e}");
+    assert!(
+        e.reason.contains(&format!(
+            "end at byte {real} but the file has {}",
+            real + 4096
+        )),
+        "{e}"
+    );
+
+    // A header longer than the file.
+    let long = dir.path().join("long.safetensors");
+    std::fs::write(&long, 1_000_000u64.to_le_bytes()).unwrap();
+    assert_eq!(load(&long).unwrap_err().field, "safetensors header");
+
+    // The same checks pass a good file.
+    let good = dir.path().join("good.safetensors");
+    std::fs::write(&good, &bytes[..real]).unwrap();
+    assert_eq!(load(&good).unwrap().manifest.name, "small");
 }

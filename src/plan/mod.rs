@@ -126,6 +126,12 @@ impl Commitment {
         std::mem::swap(&mut self.plan, &mut self.spare);
     }
 
+    /// Takes back the last [`Commitment::commit`] (before any other replan): the commitment is
+    /// the plan it replaced.
+    pub fn uncommit(&mut self) {
+        std::mem::swap(&mut self.plan, &mut self.spare);
+    }
+
     /// The paper's forecast `f_t = t + 1 - i` of the committed first action, executed at step
     /// `t` and decided at step `i`.
     pub fn forecast(&self, t: u64) -> u64 {

@@ -29,10 +29,16 @@ pub struct BatchConfig {
     pub workers: usize,
 }
 
+/// A step's answer: the response and the session's steps served with it (to take it back).
+pub type Answer = Result<(proto::StepResponse, u64), Status>;
+
 struct Work {
     slot: Arc<SessionSlot>,
     request: proto::StepRequest,
-    reply: oneshot::Sender<Result<proto::StepResponse, Status>>,
+    /// The caller's deadline; a step not replanned by then is answered DEADLINE_EXCEEDED and
+    /// not applied.
+    deadline: Option<Instant>,
+    reply: oneshot::Sender<Answer>,
 }
 
 /// The submitting side of the batch queues.
@@ -63,19 +69,23 @@ impl Batcher {
         }
     }
 
-    /// Queues a step and waits for its answer.
+    /// Queues a step and waits for its answer, until `deadline`. A step is applied only if its
+    /// answer is taken here: one the worker answers after the caller gave up (this future was
+    /// dropped, or the deadline passed) is taken back.
     pub async fn step(
         &self,
         slot: Arc<SessionSlot>,
         request: proto::StepRequest,
-    ) -> Result<proto::StepResponse, Status> {
-        let (reply, answer) = oneshot::channel();
+        deadline: Option<Instant>,
+    ) -> Answer {
+        let (reply, mut answer) = oneshot::channel();
         // One worker per session keeps its steps in order.
         let worker =
             (Arc::as_ptr(&slot) as usize / std::mem::align_of::<SessionSlot>()) % self.queues.len();
         let work = Work {
             slot,
             request,
+            deadline,
             reply,
         };
         match self.queues[worker].try_send(work) {
@@ -91,9 +101,23 @@ impl Batcher {
                 return Err(Status::unavailable("the batch workers have stopped"));
             }
         }
-        answer
-            .await
-            .unwrap_or_else(|_| Err(Status::internal("the batch worker dropped the step")))
+        let dropped = |_| Err(Status::internal("the batch worker dropped the step"));
+        let Some(deadline) = deadline else {
+            return answer.await.unwrap_or_else(dropped);
+        };
+        tokio::select! {
+            biased;
+            answered = &mut answer => answered.unwrap_or_else(dropped),
+            _ = tokio::time::sleep_until(deadline.into()) => {
+                // Closed first: the worker either answered already (taken here, so applied) or
+                // finds the channel closed and takes its step back.
+                answer.close();
+                match answer.try_recv() {
+                    Ok(answered) => answered,
+                    Err(_) => Err(super::deadline::exceeded()),
+                }
+            }
+        }
     }
 }
 
@@ -159,6 +183,10 @@ impl Worker {
             if work.reply.is_closed() {
                 continue;
             }
+            if super::deadline::passed(work.deadline) {
+                let _ = work.reply.send(Err(super::deadline::exceeded()));
+                continue;
+            }
             let policy = Arc::as_ptr(&work.slot.policy);
             groups.entry(policy).or_default().push(work);
         }
@@ -190,7 +218,7 @@ impl Worker {
             requests.push(work.request);
             replies.push(work.reply);
         }
-        let mut answers: Vec<Result<proto::StepResponse, Status>> = Vec::with_capacity(slots.len());
+        let mut answers: Vec<Answer> = Vec::with_capacity(slots.len());
         {
             let mut sessions: Vec<_> = slots.iter().map(|slot| slot.lock()).collect();
             let begun: Vec<Result<Begun, Status>> = sessions
@@ -233,14 +261,16 @@ impl Worker {
                         .expect("one result per job")
                         .map_err(|e| Status::from(super::session::StepError::from(e)))?;
                     let report = session.commit(&begun, outcome, rng);
-                    Ok(session.response(&report))
+                    Ok((session.response(&report), report.served))
                 });
                 answers.push(answer);
             }
         }
-        for (reply, answer) in replies.into_iter().zip(answers) {
-            // The client may have gone; nothing to do then.
-            let _ = reply.send(answer);
+        for ((reply, answer), slot) in replies.into_iter().zip(answers).zip(&slots) {
+            // The caller gave up while this step was replanned: nobody will see its answer.
+            if let Err(Ok((_, served))) = reply.send(answer) {
+                slot.lock().take_back(served);
+            }
         }
     }
 }

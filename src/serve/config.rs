@@ -8,6 +8,7 @@ use anyhow::Context;
 use serde::Deserialize;
 
 use super::batch::BatchConfig;
+use super::transport::Limits;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
@@ -79,6 +80,28 @@ pub struct ServeArgs {
     /// free port (printed as `metrics on ADDR`) [default: off].
     #[arg(long)]
     pub metrics_listen: Option<SocketAddr>,
+    /// Most client connections open at once; more are closed when accepted (lowered to fit the
+    /// open-file limit) [default: 1024].
+    #[arg(long)]
+    pub max_connections: Option<usize>,
+    /// Most concurrent streams (calls) on one connection (HTTP/2 SETTINGS_MAX_CONCURRENT_STREAMS)
+    /// [default: 256].
+    #[arg(long)]
+    pub max_streams_per_connection: Option<u32>,
+    /// A connection must finish its TLS handshake and send its first request within this, or it
+    /// is closed [default: 10s].
+    #[arg(long, value_parser = humantime::parse_duration)]
+    pub handshake_timeout: Option<Duration>,
+    /// A connection with no call in flight for this long is closed with GOAWAY (clients
+    /// reconnect by themselves); 0s keeps idle connections [default: 10m].
+    #[arg(long, value_parser = humantime::parse_duration)]
+    pub idle_timeout: Option<Duration>,
+    /// Interval of HTTP/2 PINGs to each client; 0s sends none [default: 30s].
+    #[arg(long, value_parser = humantime::parse_duration)]
+    pub keepalive_interval: Option<Duration>,
+    /// A PING unanswered for this long closes the connection [default: 20s].
+    #[arg(long, value_parser = humantime::parse_duration)]
+    pub keepalive_timeout: Option<Duration>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -101,6 +124,12 @@ struct FileConfig {
     tls_cert: Option<PathBuf>,
     tls_key: Option<PathBuf>,
     metrics_listen: Option<SocketAddr>,
+    max_connections: Option<usize>,
+    max_streams_per_connection: Option<u32>,
+    handshake_timeout: Option<String>,
+    idle_timeout: Option<String>,
+    keepalive_interval: Option<String>,
+    keepalive_timeout: Option<String>,
 }
 
 /// The settings in force.
@@ -122,6 +151,8 @@ pub struct ServeConfig {
     pub tls: Option<(PathBuf, PathBuf)>,
     /// Where to serve Prometheus metrics; None when off.
     pub metrics_listen: Option<SocketAddr>,
+    /// Limits on client connections (the metrics endpoint's too).
+    pub connections: Limits,
 }
 
 /// The repository's bundle directory, which the training issues fill.
@@ -150,8 +181,21 @@ impl Default for ServeConfig {
             auth_tokens: None,
             tls: None,
             metrics_listen: None,
+            connections: Limits {
+                max_connections: 1024,
+                max_streams_per_connection: 256,
+                handshake_timeout: Duration::from_secs(10),
+                idle_timeout: Some(Duration::from_secs(600)),
+                keepalive_interval: Some(Duration::from_secs(30)),
+                keepalive_timeout: Duration::from_secs(20),
+            },
         }
     }
+}
+
+/// A duration where 0 means "never".
+fn nonzero(d: Duration) -> Option<Duration> {
+    (!d.is_zero()).then_some(d)
 }
 
 fn duration(key: &str, text: Option<String>) -> anyhow::Result<Option<Duration>> {
@@ -210,6 +254,41 @@ impl ServeConfig {
                 _ => anyhow::bail!("tls_cert and tls_key go together"),
             },
             metrics_listen: args.metrics_listen.or(file.metrics_listen),
+            connections: {
+                let dc = d.connections;
+                Limits {
+                    max_connections: args
+                        .max_connections
+                        .or(file.max_connections)
+                        .unwrap_or(dc.max_connections),
+                    max_streams_per_connection: args
+                        .max_streams_per_connection
+                        .or(file.max_streams_per_connection)
+                        .unwrap_or(dc.max_streams_per_connection),
+                    handshake_timeout: args
+                        .handshake_timeout
+                        .or(duration("handshake_timeout", file.handshake_timeout)?)
+                        .unwrap_or(dc.handshake_timeout),
+                    idle_timeout: match args
+                        .idle_timeout
+                        .or(duration("idle_timeout", file.idle_timeout)?)
+                    {
+                        Some(d) => nonzero(d),
+                        None => dc.idle_timeout,
+                    },
+                    keepalive_interval: match args
+                        .keepalive_interval
+                        .or(duration("keepalive_interval", file.keepalive_interval)?)
+                    {
+                        Some(d) => nonzero(d),
+                        None => dc.keepalive_interval,
+                    },
+                    keepalive_timeout: args
+                        .keepalive_timeout
+                        .or(duration("keepalive_timeout", file.keepalive_timeout)?)
+                        .unwrap_or(dc.keepalive_timeout),
+                }
+            },
         };
         let db = d.batch.expect("batching is on by default");
         let max_batch = args.batch_max.or(file.batch_max).unwrap_or(db.max_batch);
@@ -240,6 +319,23 @@ impl ServeConfig {
         anyhow::ensure!(
             !config.session_ttl.is_zero(),
             "session_ttl must be positive"
+        );
+        let limits = &config.connections;
+        anyhow::ensure!(
+            limits.max_connections > 0,
+            "max_connections must be at least 1"
+        );
+        anyhow::ensure!(
+            limits.max_streams_per_connection > 0,
+            "max_streams_per_connection must be at least 1"
+        );
+        anyhow::ensure!(
+            !limits.handshake_timeout.is_zero(),
+            "handshake_timeout must be positive"
+        );
+        anyhow::ensure!(
+            !limits.keepalive_timeout.is_zero(),
+            "keepalive_timeout must be positive"
         );
         Ok(config)
     }

@@ -18,6 +18,9 @@ use prometheus_client::registry::Registry;
 use tokio_util::sync::CancellationToken;
 
 use super::service::ServerState;
+use super::transport::{ConnectionStats, Limits, accept_loop};
+use axum::extract::Request;
+use hyper::body::Incoming;
 
 type Labels = Vec<(&'static str, String)>;
 
@@ -157,19 +160,48 @@ async fn scrape(State(state): State<Arc<ServerState>>) -> impl IntoResponse {
         .unwrap_or_else(|_| StatusCode::INTERNAL_SERVER_ERROR.into_response())
 }
 
-/// Serves `/metrics` on `listener` until shutdown.
+/// Connections the metrics endpoint holds at once: scrapers are few.
+pub const MAX_METRICS_CONNECTIONS: usize = 64;
+
+/// Largest request head (request line and headers) the metrics endpoint reads.
+const MAX_METRICS_REQUEST_BYTES: usize = 16 * 1024;
+
+/// Serves `/metrics` on `listener` until shutdown: one request per connection, whose whole life
+/// (request, scrape, response read) must fit in the handshake timeout, so slow or silent clients
+/// cannot hold the endpoint; at most [`MAX_METRICS_CONNECTIONS`] at once.
 pub async fn serve(
     listener: tokio::net::TcpListener,
     state: Arc<ServerState>,
+    limits: Limits,
     shutdown: CancellationToken,
 ) {
+    use hyper_util::rt::{TokioIo, TokioTimer};
+    use tonic::codegen::Service;
     let router = Router::new()
         .route("/metrics", get(scrape))
         .with_state(state);
-    if let Err(e) = axum::serve(listener, router)
-        .with_graceful_shutdown(shutdown.cancelled_owned())
-        .await
-    {
-        tracing::error!(error = %e, "the metrics endpoint failed");
-    }
+    let stats = Arc::new(ConnectionStats::default());
+    let cap = MAX_METRICS_CONNECTIONS.min(limits.max_connections);
+    let lifetime = limits.handshake_timeout;
+    accept_loop(listener, cap, stats, shutdown, |tcp, peer, permit| {
+        let router = router.clone();
+        tokio::spawn(async move {
+            let _permit = permit;
+            let service = hyper::service::service_fn(move |request: Request<Incoming>| {
+                // axum's router is always ready, and its future owns what it needs.
+                router.clone().call(request.map(axum::body::Body::new))
+            });
+            let mut builder = hyper::server::conn::http1::Builder::new();
+            builder
+                .timer(TokioTimer::new())
+                .header_read_timeout(lifetime)
+                .max_buf_size(MAX_METRICS_REQUEST_BYTES)
+                .keep_alive(false);
+            let connection = builder.serve_connection(TokioIo::new(tcp), service);
+            if tokio::time::timeout(lifetime, connection).await.is_err() {
+                tracing::debug!(%peer, "metrics connection closed: not done within the handshake timeout");
+            }
+        });
+    })
+    .await;
 }

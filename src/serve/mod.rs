@@ -3,21 +3,21 @@
 pub mod auth;
 pub mod batch;
 pub mod config;
+pub mod deadline;
 pub mod health;
 pub mod local;
 pub mod metrics;
 pub mod registry;
 pub mod service;
 pub mod session;
+pub mod transport;
 
 use std::io::IsTerminal;
 use std::sync::{Arc, RwLock};
 use std::time::Duration;
 
 use anyhow::Context;
-use futures::StreamExt;
 use tokio::net::TcpListener;
-use tokio_stream::wrappers::TcpListenerStream;
 use tokio_util::sync::CancellationToken;
 use tonic_health::ServingStatus;
 
@@ -143,11 +143,19 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
             let read = |p: &std::path::Path| {
                 std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))
             };
-            let identity = tonic::transport::Identity::from_pem(read(cert)?, read(key)?);
-            Some(tonic::transport::ServerTlsConfig::new().identity(identity))
+            Some(transport::tls_acceptor(&read(cert)?, &read(key)?)?)
         }
         None => None,
     };
+    let mut limits = config.connections;
+    limits.max_connections = transport::connection_cap(limits.max_connections);
+    if limits.max_connections < config.connections.max_connections {
+        tracing::warn!(
+            max_connections = limits.max_connections,
+            asked = config.connections.max_connections,
+            "the open-file limit (ulimit -n) allows fewer connections than asked; raise it to serve more"
+        );
+    }
     let listener = TcpListener::bind(config.listen)
         .await
         .with_context(|| format!("cannot listen on {}", config.listen))?;
@@ -201,28 +209,31 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
     .max_decoding_message_size(config.max_message_bytes)
     .max_encoding_message_size(config.max_message_bytes);
 
-    // Low latency matters more than packet count for one-step round trips.
-    let incoming = TcpListenerStream::new(listener).map(|conn| {
-        conn.inspect(|stream| {
-            let _ = stream.set_nodelay(true);
-        })
-    });
-    let mut builder = tonic::transport::Server::builder();
-    if let Some(tls) = tls {
-        builder = builder
-            .tls_config(tls)
-            .context("the TLS certificate or key is not valid PEM")?;
-    }
-    let server = builder
-        .add_service(health_service)
+    let routes = tonic::service::Routes::new(health_service)
         .add_service(reflection)
-        .add_service(prac)
-        .serve_with_incoming_shutdown(incoming, shutdown.clone().cancelled_owned());
-    let mut server = tokio::spawn(server);
+        .add_service(prac);
+    let connections = Arc::new(transport::ConnectionStats::default());
+    let server = transport::serve_grpc(
+        listener,
+        tls,
+        routes,
+        limits,
+        connections.clone(),
+        shutdown.clone(),
+    );
+    let mut server = tokio::spawn(async move {
+        server.await;
+        anyhow::Ok(())
+    });
     if let Some(listener) = metrics_listener {
         // Printed before the gRPC address, which scripts wait for as the ready line.
         println!("metrics on {}", listener.local_addr()?);
-        tokio::spawn(metrics::serve(listener, state.clone(), shutdown.clone()));
+        tokio::spawn(metrics::serve(
+            listener,
+            state.clone(),
+            limits,
+            shutdown.clone(),
+        ));
     }
     println!("listening on {addr}");
     tracing::info!(%addr, bundles = %config.bundles.display(), "listening");

@@ -35,19 +35,25 @@ impl Registry {
         self.policies.keys().map(String::as_str).collect()
     }
 
-    /// Loads every `*.safetensors` file of `dir` (not recursive). A bad bundle is reported in
-    /// `errors` and skipped; an unreadable directory is an error.
+    /// Loads every `*.safetensors` entry of `dir` (not recursive). A bad bundle is reported in
+    /// `errors` and skipped, and so is an entry that is not a regular file (a directory, FIFO,
+    /// device or dangling link); an unreadable directory is an error.
     pub fn load_dir(dir: &Path) -> std::io::Result<Loaded> {
         let mut files: Vec<_> = std::fs::read_dir(dir)?
             .filter_map(Result::ok)
             .map(|e| e.path())
-            .filter(|p| p.extension().is_some_and(|e| e == "safetensors") && p.is_file())
+            .filter(|p| p.extension().is_some_and(|e| e == "safetensors"))
             .collect();
         files.sort();
         let mut registry = Registry::default();
         let mut errors = Vec::new();
         for file in files {
             let Some(name) = file.file_stem().and_then(|s| s.to_str()) else {
+                errors.push(BundleError {
+                    file: file.clone(),
+                    field: "file".into(),
+                    reason: "its name is not UTF-8, so it cannot name a policy".into(),
+                });
                 continue;
             };
             match bundle::load(&file) {
@@ -141,4 +147,58 @@ pub struct ReloadReport {
     /// Policies whose new file is broken: the old version stays.
     pub kept_old: Vec<String>,
     pub errors: Vec<BundleError>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn entries_that_are_not_regular_files_are_errors_not_silent_skips() {
+        use std::os::unix::fs::symlink;
+        let dir = tempfile::tempdir().unwrap();
+        symlink("/dev/zero", dir.path().join("zero.safetensors")).unwrap();
+        symlink(
+            dir.path().join("absent"),
+            dir.path().join("dangling.safetensors"),
+        )
+        .unwrap();
+        std::fs::create_dir(dir.path().join("folder.safetensors")).unwrap();
+        let fifo = dir.path().join("fifo.safetensors");
+        let made = std::process::Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .unwrap();
+        assert!(made.success());
+        std::fs::write(dir.path().join("notes.txt"), "not a bundle").unwrap();
+
+        let loaded = Registry::load_dir(dir.path()).unwrap();
+        assert!(loaded.registry.is_empty());
+        let mut named: Vec<String> = loaded
+            .errors
+            .iter()
+            .map(|e| {
+                let name = e.file.file_name().unwrap().to_string_lossy().into_owned();
+                format!("{name}: {}", e.reason)
+            })
+            .collect();
+        named.sort();
+        assert_eq!(named.len(), 4, "{named:?}");
+        assert!(
+            named[0].starts_with("dangling.safetensors: cannot read"),
+            "{named:?}"
+        );
+        assert!(
+            named[1].contains("not a regular file (a FIFO)"),
+            "{named:?}"
+        );
+        assert!(
+            named[2].contains("not a regular file (a directory)"),
+            "{named:?}"
+        );
+        assert!(
+            named[3].contains("not a regular file (a character device)"),
+            "{named:?}"
+        );
+    }
 }

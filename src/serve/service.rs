@@ -4,6 +4,7 @@ use std::cell::RefCell;
 use std::collections::HashMap;
 use std::pin::Pin;
 use std::sync::{Arc, RwLock};
+use std::time::Instant;
 
 use futures::Stream;
 use tokio::sync::mpsc;
@@ -11,9 +12,12 @@ use tokio_stream::wrappers::ReceiverStream;
 use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status, Streaming};
 
-use super::batch::Batcher;
+use super::batch::{Answer, Batcher};
+use super::deadline;
 use super::registry::Registry;
-use super::session::{Session, SessionError, SessionSettings, Sessions, StepError, new_session_id};
+use super::session::{
+    Session, SessionError, SessionSettings, SessionSlot, Sessions, StepError, new_session_id,
+};
 use crate::plan::ReplanScratch;
 use crate::policy::{Evaluator, Policy};
 use crate::proto::{self, prac_server::Prac};
@@ -172,13 +176,15 @@ impl ServerState {
         })
     }
 
-    /// One step, counted in the metrics (latency, forecast length, plan breaks, errors).
+    /// One step, counted in the metrics (latency, forecast length, plan breaks, errors). A step
+    /// not applied by `deadline` is answered DEADLINE_EXCEEDED and changes nothing.
     async fn step(
         &self,
         request: proto::StepRequest,
         caller: Option<&str>,
-    ) -> Result<proto::StepResponse, Status> {
-        let start = std::time::Instant::now();
+        deadline: Option<Instant>,
+    ) -> Result<Answered, Status> {
+        let start = Instant::now();
         let slot = match self.sessions.get(&request.session_id, caller) {
             Ok(slot) => slot,
             Err(e) => {
@@ -187,9 +193,9 @@ impl ServerState {
                 return Err(status);
             }
         };
-        let result = self.step_in(slot.clone(), request).await;
+        let result = self.step_in(&slot, request, deadline).await;
         match &result {
-            Ok(response) => self.metrics.step(
+            Ok((response, _)) => self.metrics.step(
                 &slot.steps_served,
                 start.elapsed(),
                 response.forecast.len(),
@@ -197,16 +203,26 @@ impl ServerState {
             ),
             Err(status) => self.metrics.error(status),
         }
-        result
+        result.map(|(response, served)| Answered {
+            response,
+            undo: TakeBack {
+                slot: Arc::clone(&slot),
+                served,
+            },
+        })
     }
 
     async fn step_in(
         &self,
-        slot: Arc<super::session::SessionSlot>,
+        slot: &Arc<SessionSlot>,
         request: proto::StepRequest,
-    ) -> Result<proto::StepResponse, Status> {
+        deadline: Option<Instant>,
+    ) -> Answer {
+        if deadline::passed(deadline) {
+            return Err(deadline::exceeded());
+        }
         if let Some(batcher) = &self.batcher {
-            return batcher.step(slot, request).await;
+            return batcher.step(slot.clone(), request, deadline).await;
         }
         // Without batching, each thread keeps one evaluator per policy for the sessions it
         // serves: memory grows with threads, not sessions.
@@ -235,8 +251,27 @@ impl ServerState {
                 &request.observation,
                 request.new_episode,
             )?;
-            Ok(session.response(&report))
+            Ok((session.response(&report), report.served))
         })
+    }
+}
+
+/// An applied step: its response, and what takes it back if the response cannot be delivered.
+struct Answered {
+    response: proto::StepResponse,
+    undo: TakeBack,
+}
+
+/// Names an applied step of a session.
+struct TakeBack {
+    slot: Arc<SessionSlot>,
+    served: u64,
+}
+
+impl TakeBack {
+    /// The step's response could not be handed to the client: it changes nothing after all.
+    fn take_back(&self) {
+        self.slot.lock().take_back(self.served);
     }
 }
 
@@ -291,11 +326,13 @@ impl Prac for PracService {
         &self,
         request: Request<proto::StepRequest>,
     ) -> Result<Response<proto::StepResponse>, Status> {
+        let deadline = deadline::of(request.metadata(), Instant::now());
         let caller = self.state.caller(request.metadata())?;
+        // Returned at once, so the response reaches the transport: the step stays applied.
         self.state
-            .step(request.into_inner(), caller.as_deref())
+            .step(request.into_inner(), caller.as_deref(), deadline)
             .await
-            .map(Response::new)
+            .map(|answered| Response::new(answered.response))
     }
 
     type StepStreamStream = ResponseStream<proto::StepResponse>;
@@ -304,6 +341,8 @@ impl Prac for PracService {
         &self,
         request: Request<Streaming<proto::StepRequest>>,
     ) -> Result<Response<Self::StepStreamStream>, Status> {
+        // The stream's deadline bounds each of its steps.
+        let deadline = deadline::of(request.metadata(), Instant::now());
         let caller = self.state.caller(request.metadata())?;
         let mut inbound = request.into_inner();
         let (tx, rx) = mpsc::channel(STREAM_BUFFER);
@@ -326,9 +365,17 @@ impl Prac for PracService {
                                 break;
                             }
                         };
-                        let response = state.step(request, caller.as_deref()).await;
-                        let failed = response.is_err();
+                        let answered = state.step(request, caller.as_deref(), deadline).await;
+                        let failed = answered.is_err();
+                        let (response, applied) = match answered {
+                            Ok(answered) => (Ok(answered.response), Some(answered.undo)),
+                            Err(status) => (Err(status), None),
+                        };
                         if !send(&tx, response, &state.shutdown).await {
+                            // Not handed to the stream: the client never sees this step.
+                            if let Some(applied) = applied {
+                                applied.take_back();
+                            }
                             let _ = tx.try_send(Err(shutting_down()));
                             break;
                         }

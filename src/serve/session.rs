@@ -17,6 +17,10 @@ use crate::plan::{
 use crate::policy::{Evaluator, Policy};
 use crate::proto;
 
+/// Largest step index or episode counter a resumed plan may carry: 2^53 - 1, the largest integer
+/// every client (a JSON number, a Python float) holds exactly. Counting on from it cannot wrap.
+pub const MAX_COUNTER: u64 = (1 << 53) - 1;
+
 /// Resolved per-session options.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SessionSettings {
@@ -64,8 +68,11 @@ impl SessionSettings {
                 c * range
             }
         };
-        if epsilon > f32::MAX as f64 {
-            return Err(format!("epsilon {epsilon} is too large for f32"));
+        // A finite tolerance always: coef x range can still overflow (or be 0 x inf).
+        if !(epsilon.is_finite() && epsilon <= f32::MAX as f64) {
+            return Err(format!(
+                "epsilon {epsilon} is not a finite f32; give a smaller epsilon or epsilon_coef"
+            ));
         }
         let check_count = |what: &str, n: u32| -> Result<usize, String> {
             if n == 0 || n as usize > max_horizon_limit {
@@ -143,6 +150,8 @@ pub struct StepReport {
     pub step: u64,
     pub episode: u64,
     pub f_t: u64,
+    /// The session's steps served with this one, which names it for [`Session::take_back`].
+    pub served: u64,
 }
 
 pub struct Session {
@@ -159,6 +168,15 @@ pub struct Session {
     episode: u64,
     steps_served: u64,
     plan_updates: watch::Sender<Arc<proto::Plan>>,
+    /// What the last commit replaced, so a step whose answer never left the server is taken back.
+    before_last_commit: Option<BeforeCommit>,
+}
+
+/// A session's counters and rng before a commit.
+struct BeforeCommit {
+    rng: ChaCha8Rng,
+    step: Option<u64>,
+    episode: u64,
 }
 
 impl Session {
@@ -180,6 +198,7 @@ impl Session {
             policy,
             settings,
             plan_updates,
+            before_last_commit: None,
         }
     }
 
@@ -235,6 +254,7 @@ impl Session {
         }
         let fresh = new_episode || self.step.is_none();
         let step = match self.step {
+            // Resumed counters are bounded by MAX_COUNTER, so this cannot wrap.
             Some(prev) if !fresh => prev + 1,
             _ => 0,
         };
@@ -262,7 +282,11 @@ impl Session {
 
     /// Makes the replanned plan the committed one.
     pub fn commit(&mut self, begun: &Begun, outcome: ReplanOutcome, rng: ChaCha8Rng) -> StepReport {
-        self.rng = rng;
+        self.before_last_commit = Some(BeforeCommit {
+            rng: std::mem::replace(&mut self.rng, rng),
+            step: self.step,
+            episode: self.episode,
+        });
         self.commitment.commit();
         if begun.fresh && self.step.is_some() {
             self.episode += 1;
@@ -278,7 +302,29 @@ impl Session {
             step: t,
             episode: self.episode,
             f_t: self.commitment.forecast(t),
+            served: self.steps_served,
         }
+    }
+
+    /// Takes back the step that made `steps_served` reach `served`, if it is still the last one:
+    /// its answer never reached the client (the caller gave up or its stream is gone), and a
+    /// step the client was not answered must change nothing.
+    pub fn take_back(&mut self, served: u64) -> bool {
+        if self.steps_served != served {
+            return false;
+        }
+        let Some(before) = self.before_last_commit.take() else {
+            return false;
+        };
+        self.commitment.uncommit();
+        self.rng = before.rng;
+        self.step = before.step;
+        self.episode = before.episode;
+        self.steps_served -= 1;
+        if self.plan_updates.receiver_count() > 0 {
+            self.plan_updates.send_replace(Arc::new(self.plan_proto()));
+        }
+        true
     }
 
     /// Takes over a plan committed elsewhere (`OpenSession` with `resume`): `plan.actions[0]` was
@@ -290,6 +336,14 @@ impl Session {
         let limit = self.settings.replan.max_horizon;
         if plan.actions.is_empty() {
             return Err("the resumed plan has no actions; omit resume to start afresh".into());
+        }
+        for (field, value) in [("start_step", plan.start_step), ("episode", plan.episode)] {
+            if value > MAX_COUNTER {
+                return Err(format!(
+                    "resume.{field} is {value}; a resumed counter is at most {MAX_COUNTER} (2^53 \
+                     - 1), so that steps and episodes never wrap"
+                ));
+            }
         }
         if plan.actions.len() > limit {
             return Err(format!(
@@ -333,6 +387,7 @@ impl Session {
         }
         // Keep the spare's capacity for the allocation-free steps that follow.
         self.commitment.replace(resumed);
+        self.before_last_commit = None;
         self.step = Some(plan.start_step);
         self.episode = plan.episode;
         Ok(())
@@ -429,7 +484,33 @@ pub struct SessionSlot {
     /// Its policy's step counter in the metrics.
     pub steps_served: prometheus_client::metrics::counter::Counter,
     session: Mutex<Session>,
+    /// When the session was last used (ms since the store's epoch); idle time starts here.
     last_used_ms: AtomicU64,
+    /// Requests using the session now: a session with one in flight never expires.
+    in_use: AtomicU64,
+}
+
+/// Marks a session in use from [`Sessions::get`] until dropped; then its idle time starts.
+pub struct InUse {
+    slot: Arc<SessionSlot>,
+    epoch: Instant,
+}
+
+impl std::ops::Deref for InUse {
+    type Target = Arc<SessionSlot>;
+    fn deref(&self) -> &Arc<SessionSlot> {
+        &self.slot
+    }
+}
+
+impl Drop for InUse {
+    fn drop(&mut self) {
+        // Stamp before releasing, so the evictor never sees it free with an old stamp.
+        self.slot
+            .last_used_ms
+            .store(self.epoch.elapsed().as_millis() as u64, Ordering::SeqCst);
+        self.slot.in_use.fetch_sub(1, Ordering::SeqCst);
+    }
 }
 
 impl SessionSlot {
@@ -523,21 +604,30 @@ impl Sessions {
                 steps_served,
                 session: Mutex::new(session),
                 last_used_ms: AtomicU64::new(self.now_ms()),
+                in_use: AtomicU64::new(0),
             }),
         );
         Ok(())
     }
 
-    /// The live session with this id, marked as used now, if `caller` owns it.
-    pub fn get(&self, id: &str, caller: Option<&str>) -> Result<Arc<SessionSlot>, SessionError> {
-        let slot = self.slots().get(id).cloned();
-        match slot {
+    /// The live session with this id, in use until the guard drops, if `caller` owns it.
+    pub fn get(&self, id: &str, caller: Option<&str>) -> Result<InUse, SessionError> {
+        // Marked in use under the map's lock, so the evictor cannot take it in between.
+        let slots = self.slots();
+        match slots.get(id) {
             Some(slot) if slot.owner.as_deref() != caller => Err(SessionError::NotOwner(shown(id))),
             Some(slot) => {
-                slot.last_used_ms.store(self.now_ms(), Ordering::Relaxed);
-                Ok(slot)
+                slot.in_use.fetch_add(1, Ordering::SeqCst);
+                slot.last_used_ms.store(self.now_ms(), Ordering::SeqCst);
+                Ok(InUse {
+                    slot: slot.clone(),
+                    epoch: self.epoch,
+                })
             }
-            None => Err(self.why_missing(id)),
+            None => {
+                drop(slots);
+                Err(self.why_missing(id))
+            }
         }
     }
 
@@ -594,16 +684,20 @@ impl Sessions {
         }
     }
 
-    /// Removes every session idle for longer than the TTL; returns how many.
+    /// Removes every session idle for longer than the TTL; returns how many. Idle time starts
+    /// when a request ends: a session with a request in flight is never idle.
     pub fn evict_idle(&self) -> usize {
-        let now = self.now_ms();
         let ttl_ms = self.ttl.as_millis() as u64;
         let expired: Vec<(String, u64)> = {
             let mut slots = self.slots();
+            let now = self.now_ms();
             let ids: Vec<(String, u64)> = slots
                 .iter()
                 .filter_map(|(id, slot)| {
-                    let idle = now.saturating_sub(slot.last_used_ms.load(Ordering::Relaxed));
+                    if slot.in_use.load(Ordering::SeqCst) > 0 {
+                        return None;
+                    }
+                    let idle = now.saturating_sub(slot.last_used_ms.load(Ordering::SeqCst));
                     (idle > ttl_ms).then(|| (id.clone(), idle))
                 })
                 .collect();
@@ -624,5 +718,164 @@ impl Sessions {
             );
         }
         expired.len()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bundle::ValueScale;
+    use crate::policy::test_manifest;
+
+    fn policy() -> Arc<Policy> {
+        Arc::new(Policy::random(
+            test_manifest("toy", "toy", 3, 2, &[16, 16], &[8, 8]),
+            5,
+        ))
+    }
+
+    fn session(policy: &Arc<Policy>, options: proto::SessionOptions) -> Session {
+        let settings = SessionSettings::resolve(Some(&options), policy, 256).unwrap();
+        Session::new("s".into(), policy.clone(), settings)
+    }
+
+    fn step(s: &mut Session, obs: &[f32]) -> proto::StepResponse {
+        let mut evaluator = Evaluator::for_sessions(s.policy.clone(), 1);
+        let mut scratch = ReplanScratch::new(3, 2);
+        let report = s.step(&mut evaluator, &mut scratch, obs, false).unwrap();
+        s.response(&report)
+    }
+
+    #[test]
+    fn a_step_taken_back_changes_nothing() {
+        let policy = policy();
+        let options = proto::SessionOptions {
+            sampled: true,
+            seed: 9,
+            tolerance: Some(proto::session_options::Tolerance::Epsilon(1e6)),
+            ..Default::default()
+        };
+        let (mut a, mut b) = (session(&policy, options), session(&policy, options));
+        step(&mut a, &[0.1, 0.2, 0.3]);
+        step(&mut b, &[0.1, 0.2, 0.3]);
+        let lost = step(&mut a, &[0.5, 0.5, 0.5]);
+        assert!(a.take_back(2));
+        // Only the last step, and only once.
+        assert!(!a.take_back(2));
+        assert!(!a.take_back(1));
+        assert_eq!(a.steps_served(), 1);
+        let (ra, rb) = (
+            step(&mut a, &[0.4, 0.0, 0.1]),
+            step(&mut b, &[0.4, 0.0, 0.1]),
+        );
+        assert_eq!(ra, rb, "the taken-back step left a trace");
+        assert_eq!(ra.step, 1);
+        assert_ne!(lost.forecast, ra.forecast);
+        assert_eq!(a.plan_proto(), b.plan_proto());
+    }
+
+    #[test]
+    fn a_session_in_use_never_expires_and_idles_from_its_last_use() {
+        let sessions = Sessions::new(8, Duration::from_millis(30));
+        let policy = policy();
+        let s = session(&policy, Default::default());
+        sessions.insert(s, Default::default()).unwrap();
+        let in_use = sessions.get("s", None).unwrap();
+        std::thread::sleep(Duration::from_millis(80));
+        assert_eq!(sessions.evict_idle(), 0, "evicted while a request used it");
+        drop(in_use);
+        assert_eq!(
+            sessions.evict_idle(),
+            0,
+            "idle time must start when the request ends"
+        );
+        std::thread::sleep(Duration::from_millis(80));
+        assert_eq!(sessions.evict_idle(), 1);
+        assert!(matches!(
+            sessions.get("s", None),
+            Err(SessionError::Expired { .. })
+        ));
+    }
+
+    #[test]
+    fn resumed_counters_that_could_wrap_are_refused() {
+        let policy = policy();
+        let plan = |start_step: u64, episode: u64, decided_at: u64| proto::Plan {
+            session_id: String::new(),
+            episode,
+            start_step,
+            actions: vec![proto::PlannedAction {
+                action: vec![0.0, 0.0],
+                predicted_observation: vec![],
+                decided_at,
+            }],
+        };
+        for (start, episode, decided) in [
+            (u64::MAX, 0, 0),
+            (u64::MAX, 0, u64::MAX),
+            (0, u64::MAX, 0),
+            (MAX_COUNTER + 1, 0, 0),
+        ] {
+            let mut s = session(&policy, Default::default());
+            let e = s.resume(&plan(start, episode, decided)).unwrap_err();
+            assert!(e.contains("at most 9007199254740991"), "{e}");
+        }
+        let mut s = session(&policy, Default::default());
+        s.resume(&plan(MAX_COUNTER, MAX_COUNTER, MAX_COUNTER))
+            .unwrap();
+        let response = step(&mut s, &[0.0; 3]);
+        assert_eq!(response.step, MAX_COUNTER + 1);
+        assert_eq!(response.episode, MAX_COUNTER);
+        assert!(response.f_t >= 1);
+    }
+
+    #[test]
+    fn options_resolve_as_the_proto_says() {
+        use proto::session_options::{Growth as G, Tolerance};
+        let policy = policy();
+        let resolve =
+            |options: proto::SessionOptions| SessionSettings::resolve(Some(&options), &policy, 256);
+        // max_horizon 0: 32, or n for fixed n > 32.
+        let horizon = |growth, max_horizon| {
+            resolve(proto::SessionOptions {
+                growth,
+                max_horizon,
+                ..Default::default()
+            })
+            .map(|s| s.replan.max_horizon)
+        };
+        assert_eq!(horizon(None, 0), Ok(32));
+        assert_eq!(horizon(Some(G::Fixed(8)), 0), Ok(32));
+        assert_eq!(horizon(Some(G::Fixed(40)), 0), Ok(40));
+        assert_eq!(horizon(Some(G::Fixed(40)), 40), Ok(40));
+        assert!(
+            horizon(Some(G::Fixed(40)), 32)
+                .unwrap_err()
+                .contains("longer than")
+        );
+        assert!(
+            horizon(Some(G::Fixed(300)), 0)
+                .unwrap_err()
+                .contains("1..=256")
+        );
+
+        // A value scale that overflows f32 never yields a non-finite tolerance.
+        let mut huge = (*policy).clone();
+        huge.manifest.value_scale = Some(ValueScale {
+            v_pi: 1.7e308,
+            v_rand: -1.7e308,
+        });
+        for coef in [0.0, 1.0] {
+            let e = SessionSettings::resolve(
+                Some(&proto::SessionOptions {
+                    tolerance: Some(Tolerance::EpsilonCoef(coef)),
+                    ..Default::default()
+                }),
+                &huge,
+                256,
+            )
+            .unwrap_err();
+            assert!(e.contains("not a finite f32"), "{coef}: {e}");
+        }
     }
 }

@@ -165,3 +165,74 @@ pub async fn open_default_session(client: &mut PracClient<Channel>, policy: &str
         .into_inner()
         .session_id
 }
+
+/// A raw HTTP/2 connection to the server: no client-side deadlines, frames as written.
+pub async fn h2_connect(
+    addr: &str,
+) -> (
+    h2::client::SendRequest<bytes::Bytes>,
+    tokio::task::JoinHandle<Result<(), h2::Error>>,
+) {
+    let tcp = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let (send, connection) = h2::client::handshake(tcp).await.unwrap();
+    (send, tokio::spawn(connection))
+}
+
+/// The headers of a gRPC call to `path`.
+pub fn grpc_request(addr: &str, path: &str) -> http::Request<()> {
+    http::Request::builder()
+        .method("POST")
+        .uri(format!("http://{addr}{path}"))
+        .header("content-type", "application/grpc")
+        .header("te", "trailers")
+        .body(())
+        .unwrap()
+}
+
+/// One gRPC message: the 5-byte prefix and the encoded message.
+pub fn grpc_frame(message: &impl prost::Message) -> bytes::Bytes {
+    let body = message.encode_to_vec();
+    let mut framed = Vec::with_capacity(5 + body.len());
+    framed.push(0);
+    framed.extend_from_slice(&(body.len() as u32).to_be_bytes());
+    framed.extend_from_slice(&body);
+    bytes::Bytes::from(framed)
+}
+
+/// A unary call over a raw HTTP/2 connection, with `grpc-timeout` set to `timeout` if given
+/// (the server alone enforces it): the grpc-status and the response body.
+pub async fn h2_unary(
+    send: &mut h2::client::SendRequest<bytes::Bytes>,
+    addr: &str,
+    path: &str,
+    message: &impl prost::Message,
+    timeout: Option<&str>,
+) -> (String, Vec<u8>) {
+    let mut request = grpc_request(addr, path);
+    if let Some(timeout) = timeout {
+        request
+            .headers_mut()
+            .insert("grpc-timeout", timeout.parse().unwrap());
+    }
+    let mut ready = send.clone().ready().await.unwrap();
+    let (response, mut body) = ready.send_request(request, false).unwrap();
+    body.send_data(grpc_frame(message), true).unwrap();
+    let response = response.await.unwrap();
+    // A trailers-only answer carries its status in the headers.
+    let headers_status = response.headers().get("grpc-status").cloned();
+    let mut stream = response.into_body();
+    let mut data = Vec::new();
+    while let Some(chunk) = stream.data().await {
+        let chunk = chunk.unwrap();
+        let _ = stream.flow_control().release_capacity(chunk.len());
+        data.extend_from_slice(&chunk);
+    }
+    let trailers = stream.trailers().await.unwrap().unwrap_or_default();
+    let status = trailers
+        .get("grpc-status")
+        .cloned()
+        .or(headers_status)
+        .map(|v| v.to_str().unwrap().to_string())
+        .unwrap_or_default();
+    (status, data)
+}

@@ -1,0 +1,295 @@
+//! Connection limits against a real server: silent connections are closed, the connection cap
+//! holds, idle connections get GOAWAY, streams per connection are capped, a stream whose client
+//! never reads stalls alone, and the TLS port and metrics endpoint shrug off slow, plaintext,
+//! oversized and numerous clients.
+
+mod common;
+
+use std::io::{Read, Write};
+use std::net::TcpStream;
+use std::time::{Duration, Instant};
+
+use bytes::Bytes;
+use common::{
+    Server, bundle_dir, grpc_frame, grpc_request, h2_connect, h2_unary, open_default_session,
+};
+use prac::proto;
+
+/// Whether the server closes `stream` within `within` (EOF or a reset), sending at most a GOAWAY.
+fn closed_within(stream: &mut TcpStream, within: Duration) -> bool {
+    stream.set_read_timeout(Some(within)).unwrap();
+    let start = Instant::now();
+    let mut buf = [0u8; 4096];
+    loop {
+        match stream.read(&mut buf) {
+            Ok(0) => return true,
+            // HTTP/2 SETTINGS and GOAWAY frames may come first.
+            Ok(_) if start.elapsed() < within => continue,
+            Ok(_) => return false,
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                ) =>
+            {
+                return false;
+            }
+            Err(_) => return true,
+        }
+    }
+}
+
+async fn wait_healthy(server: &Server, within: Duration) {
+    let start = Instant::now();
+    loop {
+        let attempt = tokio::time::timeout(Duration::from_secs(1), server.health("")).await;
+        if attempt.is_ok() {
+            return;
+        }
+        assert!(
+            start.elapsed() < within,
+            "no health answer within {within:?}"
+        );
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn silent_connections_are_closed_and_the_cap_holds() {
+    let bundles = bundle_dir();
+    let server = Server::start(
+        bundles.path(),
+        &["--handshake-timeout", "500ms", "--max-connections", "8"],
+    );
+    server.wait_serving().await;
+    let mut silent: Vec<TcpStream> = (0..40)
+        .map(|_| TcpStream::connect(&server.addr).unwrap())
+        .collect();
+    let start = Instant::now();
+    for (i, stream) in silent.iter_mut().enumerate() {
+        assert!(
+            closed_within(stream, Duration::from_secs(5)),
+            "silent connection {i} still open after {:?}",
+            start.elapsed()
+        );
+    }
+    // Freed: a real client is served again.
+    wait_healthy(&server, Duration::from_secs(5)).await;
+}
+
+#[test]
+fn the_connection_cap_follows_the_open_file_limit() {
+    let bundles = bundle_dir();
+    let out = std::process::Command::new("sh")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -n 200 && exec {} serve --listen 127.0.0.1:0 --bundles {} --max-connections 5000 & \
+             pid=$!; sleep 1; kill $pid; wait $pid",
+            env!("CARGO_BIN_EXE_prac"),
+            bundles.path().display()
+        ))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("max_connections=136") && stderr.contains("ulimit -n"),
+        "{stderr}"
+    );
+}
+
+/// A unary health check over a raw HTTP/2 connection; its grpc-status.
+async fn h2_health_check(send: &mut h2::client::SendRequest<Bytes>, addr: &str) -> String {
+    let request = tonic_health::pb::HealthCheckRequest::default();
+    h2_unary(send, addr, "/grpc.health.v1.Health/Check", &request, None)
+        .await
+        .0
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn idle_connections_get_goaway_and_clients_reconnect() {
+    let bundles = bundle_dir();
+    let server = Server::start(bundles.path(), &["--idle-timeout", "300ms"]);
+    server.wait_serving().await;
+    let (mut send, connection) = h2_connect(&server.addr).await;
+    assert_eq!(h2_health_check(&mut send, &server.addr).await, "0");
+    // No call in flight: the server ends the connection.
+    let ended = tokio::time::timeout(Duration::from_secs(5), connection).await;
+    assert!(ended.is_ok(), "the idle connection is still open");
+
+    // A tonic channel reconnects by itself after the server's GOAWAY.
+    let channel = server.channel().await;
+    let mut health = tonic_health::pb::health_client::HealthClient::new(channel);
+    for _ in 0..2 {
+        health
+            .check(tonic_health::pb::HealthCheckRequest::default())
+            .await
+            .unwrap();
+        tokio::time::sleep(Duration::from_millis(700)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn streams_per_connection_are_capped() {
+    let bundles = bundle_dir();
+    let server = Server::start(bundles.path(), &["--max-streams-per-connection", "7"]);
+    server.wait_serving().await;
+    let (mut send, _connection) = h2_connect(&server.addr).await;
+    // The server's SETTINGS arrive with its first answer.
+    assert_eq!(h2_health_check(&mut send, &server.addr).await, "0");
+    assert_eq!(send.current_max_send_streams(), 7);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stream_whose_client_never_reads_stalls_alone() {
+    let bundles = bundle_dir();
+    let server = Server::start(bundles.path(), &[]);
+    server.wait_serving().await;
+    let mut client = server.client().await;
+    let session = open_default_session(&mut client, "toy").await;
+
+    // A small receive window, so that the unread answers cost this client little: the test is
+    // whether the server holds the stalled stream's requests without harm to the connection.
+    let tcp = tokio::net::TcpStream::connect(&server.addr).await.unwrap();
+    let (mut send, connection) = h2::client::Builder::new()
+        .initial_window_size(2048)
+        .handshake::<_, Bytes>(tcp)
+        .await
+        .unwrap();
+    let connection = tokio::spawn(connection);
+    let ready = send.clone().ready().await.unwrap();
+    let mut ready = ready;
+    let (_response, mut requests) = ready
+        .send_request(
+            grpc_request(&server.addr, "/prac.v1.Prac/StepStream"),
+            false,
+        )
+        .unwrap();
+    // 20,000 small requests, one DATA frame each, whose answers are never read.
+    let step = grpc_frame(&proto::StepRequest {
+        session_id: session.clone(),
+        observation: vec![0.1, 0.2, 0.3],
+        new_episode: false,
+    });
+    for _ in 0..20_000 {
+        requests.send_data(step.clone(), false).unwrap();
+    }
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    // Other calls on the same connection still go through.
+    for _ in 0..3 {
+        assert_eq!(h2_health_check(&mut send, &server.addr).await, "0");
+    }
+    assert!(!connection.is_finished(), "the connection was closed");
+}
+
+fn tls_files(dir: &std::path::Path) -> (String, std::path::PathBuf, std::path::PathBuf) {
+    let certified = rcgen::generate_simple_self_signed(vec!["localhost".to_string()]).unwrap();
+    let (cert, key) = (dir.join("cert.pem"), dir.join("key.pem"));
+    std::fs::write(&cert, certified.cert.pem()).unwrap();
+    std::fs::write(&key, certified.signing_key.serialize_pem()).unwrap();
+    (certified.cert.pem(), cert, key)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_tls_port_closes_plaintext_and_slow_handshakes() {
+    let bundles = bundle_dir();
+    let (cert_pem, cert, key) = tls_files(bundles.path());
+    let server = Server::start(
+        bundles.path(),
+        &[
+            "--tls-cert",
+            cert.to_str().unwrap(),
+            "--tls-key",
+            key.to_str().unwrap(),
+            "--handshake-timeout",
+            "500ms",
+        ],
+    );
+    // Plaintext HTTP/2 to the TLS port: refused at once.
+    let mut plain = TcpStream::connect(&server.addr).unwrap();
+    plain
+        .write_all(b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n")
+        .unwrap();
+    assert!(closed_within(&mut plain, Duration::from_secs(2)));
+    // A handshake that never finishes: half a ClientHello, then silence.
+    let mut slow: Vec<TcpStream> = (0..20)
+        .map(|_| {
+            let mut s = TcpStream::connect(&server.addr).unwrap();
+            s.write_all(&[0x16, 0x03, 0x01, 0x00, 0xff]).unwrap();
+            s
+        })
+        .collect();
+    for s in &mut slow {
+        assert!(closed_within(s, Duration::from_secs(5)));
+    }
+    // Real TLS clients are served throughout.
+    let port = server.addr.rsplit(':').next().unwrap().to_string();
+    let tls = tonic::transport::ClientTlsConfig::new()
+        .ca_certificate(tonic::transport::Certificate::from_pem(cert_pem))
+        .domain_name("localhost");
+    let channel = tonic::transport::Channel::from_shared(format!("https://localhost:{port}"))
+        .unwrap()
+        .tls_config(tls)
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    let mut health = tonic_health::pb::health_client::HealthClient::new(channel);
+    health
+        .check(tonic_health::pb::HealthCheckRequest::default())
+        .await
+        .unwrap();
+}
+
+fn metrics_addr(server: &Server) -> String {
+    server
+        .preamble
+        .iter()
+        .find_map(|l| l.strip_prefix("metrics on "))
+        .expect("the metrics address")
+        .to_string()
+}
+
+fn scrape_status(addr: &str, extra_header: &str) -> String {
+    let mut stream = TcpStream::connect(addr).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(5)))
+        .unwrap();
+    let _ = write!(
+        stream,
+        "GET /metrics HTTP/1.1\r\nHost: {addr}\r\n{extra_header}\r\n"
+    );
+    let mut text = String::new();
+    let _ = stream.read_to_string(&mut text);
+    text.lines().next().unwrap_or_default().to_string()
+}
+
+#[test]
+fn the_metrics_endpoint_sheds_slow_huge_and_numerous_clients() {
+    let bundles = bundle_dir();
+    let server = Server::start(
+        bundles.path(),
+        &[
+            "--metrics-listen",
+            "127.0.0.1:0",
+            "--handshake-timeout",
+            "500ms",
+        ],
+    );
+    let addr = metrics_addr(&server);
+    assert!(scrape_status(&addr, "").starts_with("HTTP/1.1 200"));
+    // Silent and numerous: 100 connections that send nothing are all closed.
+    let mut silent: Vec<TcpStream> = (0..100)
+        .map(|_| TcpStream::connect(&addr).unwrap())
+        .collect();
+    for s in &mut silent {
+        assert!(closed_within(s, Duration::from_secs(5)));
+    }
+    // A request head over 16 KiB is refused.
+    let huge = format!("X-Padding: {}\r\n", "a".repeat(64 * 1024));
+    let status = scrape_status(&addr, &huge);
+    assert!(!status.starts_with("HTTP/1.1 200"), "{status}");
+    // A client that sends half a request and stalls is closed.
+    let mut stalled = TcpStream::connect(&addr).unwrap();
+    stalled.write_all(b"GET /metr").unwrap();
+    assert!(closed_within(&mut stalled, Duration::from_secs(5)));
+    assert!(scrape_status(&addr, "").starts_with("HTTP/1.1 200"));
+}
