@@ -26,12 +26,51 @@ pub fn valid_bundle() -> Vec<u8> {
     bundle::to_bytes(&toy_policy()).expect("the toy policy serialises")
 }
 
-/// The bundle loader on arbitrary bytes.
+/// The bundle loader on arbitrary bytes, from memory and as a file reads it (header first):
+/// both must agree.
 pub fn bundle_bytes(data: &[u8]) {
-    if let Ok(policy) = bundle::from_bytes(data, Path::new("fuzz.safetensors")) {
+    let path = Path::new("fuzz.safetensors");
+    let from_memory = bundle::from_bytes(data, path);
+    let from_file = bundle::from_reader(std::io::Cursor::new(data), data.len() as u64, path);
+    assert_eq!(
+        from_memory.is_ok(),
+        from_file.is_ok(),
+        "memory: {:?}, file: {:?}",
+        from_memory.as_ref().err(),
+        from_file.as_ref().err()
+    );
+    if let Ok(policy) = from_memory {
         // What loads must also plan: one replan from a zero state.
         plan_once(Arc::new(policy));
     }
+}
+
+/// Manifests an attacker wrote: each must be refused, not allocated from or served.
+pub fn attack_manifests() -> Vec<Vec<u8>> {
+    let base = toy_policy().manifest;
+    let attacks: [fn(&mut bundle::Manifest); 5] = [
+        |m| m.critic.n_critics = 1_000_000_000,
+        |m| m.critic.n_critics = 1 << 62,
+        |m| {
+            m.action_low = vec![-3e38; 2];
+            m.action_high = vec![3e38; 2];
+        },
+        |m| {
+            m.value_scale = Some(bundle::ValueScale {
+                v_pi: 1.7e308,
+                v_rand: -1.7e308,
+            })
+        },
+        |m| m.actor.hidden = vec![1 << 40],
+    ];
+    attacks
+        .iter()
+        .map(|attack| {
+            let mut manifest = base.clone();
+            attack(&mut manifest);
+            serde_json::to_vec(&manifest).expect("a manifest serialises")
+        })
+        .collect()
 }
 
 /// The loader's manifest checks: the toy policy's tensors under an arbitrary manifest text.
@@ -53,7 +92,10 @@ fn plan_once(policy: Arc<Policy>) {
     let mut session = Session::new("fuzz".into(), policy.clone(), settings);
     let mut evaluator = Evaluator::for_sessions(policy, 1);
     let mut scratch = ReplanScratch::new(od, ad);
-    let _ = session.step(&mut evaluator, &mut scratch, &vec![0.0; od], true);
+    if let Ok(report) = session.step(&mut evaluator, &mut scratch, &vec![0.0; od], true) {
+        let response = session.response(&report);
+        assert!(response.action.iter().all(|a| a.is_finite()));
+    }
 }
 
 #[derive(Arbitrary, Debug)]
@@ -157,6 +199,10 @@ pub fn requests(data: &[u8]) {
             let response = session.response(&report);
             assert!(!response.forecast.is_empty() && response.forecast.len() <= 257);
             assert!(response.action.iter().all(|a| a.is_finite()));
+            // Counters never wrap, whatever plan was resumed.
+            let max = crate::serve::session::MAX_COUNTER;
+            assert!(response.step <= max + 64 && response.episode <= max + 64);
+            assert!(response.f_t >= 1 && response.f_t <= response.step + 1);
         }
         let _ = session.plan_proto();
     }
@@ -229,6 +275,10 @@ mod tests {
                 std::fs::create_dir_all(file.parent().unwrap()).unwrap();
                 std::fs::write(file, bytes).unwrap();
             }
+            for (k, manifest) in attack_manifests().into_iter().enumerate() {
+                let file = root.join(format!("bundle_manifest/attack-{k}.json"));
+                std::fs::write(file, manifest).unwrap();
+            }
         }
         let bytes = std::fs::read(&bundle_seed).unwrap();
         bundle::from_bytes(&bytes, &bundle_seed).unwrap();
@@ -249,6 +299,20 @@ mod tests {
             mutate_and_run(&[manifest_seed()], 3000, 2, bundle_manifest),
             3001
         );
+    }
+
+    #[test]
+    fn attack_manifests_are_refused_and_their_mutations_survived() {
+        let attacks = attack_manifests();
+        for manifest in &attacks {
+            let text = String::from_utf8_lossy(manifest);
+            let bytes = bundle::to_bytes_with_manifest(&toy_policy(), &text).unwrap();
+            assert!(
+                bundle::from_bytes(&bytes, Path::new("attack")).is_err(),
+                "{text}"
+            );
+        }
+        assert_eq!(mutate_and_run(&attacks, 2000, 4, bundle_manifest), 2005);
     }
 
     #[test]

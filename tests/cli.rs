@@ -44,6 +44,37 @@ fn inspect_prints_the_manifest_and_a_forward_pass() {
 }
 
 #[test]
+fn a_manifest_declaring_a_billion_critics_is_an_error_not_an_abort() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("huge.safetensors");
+    let policy = toy_policy("huge", 4);
+    let mut manifest = policy.manifest.clone();
+    manifest.critic.n_critics = 1_000_000_000;
+    let text = serde_json::to_string(&manifest).unwrap();
+    std::fs::write(
+        &file,
+        prac::bundle::to_bytes_with_manifest(&policy, &text).unwrap(),
+    )
+    .unwrap();
+    let out = prac(&["inspect", file.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(1), "{out:?}");
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(
+        err.contains("huge.safetensors: critic.qf2.0.weight: missing tensor"),
+        "{err}"
+    );
+    // The server skips it and serves the rest; --strict refuses to start.
+    prac::bundle::save(&toy_policy("toy", 5), &dir.path().join("toy.safetensors")).unwrap();
+    let strict = Command::new(env!("CARGO_BIN_EXE_prac"))
+        .args(["serve", "--listen", "127.0.0.1:0", "--strict", "--bundles"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert_eq!(strict.status.code(), Some(1), "{strict:?}");
+    assert!(String::from_utf8_lossy(&strict.stderr).contains("critic.qf2.0.weight"));
+}
+
+#[test]
 fn inspect_names_the_file_and_field_of_a_bad_bundle() {
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("bad.safetensors");

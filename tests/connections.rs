@@ -293,3 +293,137 @@ fn the_metrics_endpoint_sheds_slow_huge_and_numerous_clients() {
     assert!(closed_within(&mut stalled, Duration::from_secs(5)));
     assert!(scrape_status(&addr, "").starts_with("HTTP/1.1 200"));
 }
+
+/// Resident memory of a process, in KiB.
+fn rss_kib(pid: u32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.split_whitespace().next())
+        .and_then(|v| v.parse().ok())
+        .unwrap()
+}
+
+/// Not a test: the figures of docs/operations.md ("Limits"). Run with
+/// `cargo test --release --test connections -- --ignored --nocapture`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "a measurement; prints figures"]
+async fn measure_connection_stream_and_tls_costs() {
+    let bundles = bundle_dir();
+    let (_, cert, key) = tls_files(bundles.path());
+    let server = Server::start(
+        bundles.path(),
+        &["--max-connections", "4000", "--handshake-timeout", "60s"],
+    );
+    server.wait_serving().await;
+    let pid = server.child.id();
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let base = rss_kib(pid);
+
+    // 1,000 connections that completed the HTTP/2 handshake and sent nothing else.
+    let mut connections = Vec::new();
+    for _ in 0..1000 {
+        connections.push(h2_connect(&server.addr).await);
+    }
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let with_connections = rss_kib(pid);
+    println!(
+        "idle HTTP/2 connections: 1000 held, {:.1} KiB each",
+        (with_connections - base) as f64 / 1000.0
+    );
+
+    // 4 x 256 StepStreams with headers only (the most a connection may open by default).
+    let mut streams = Vec::new();
+    for (send, _) in connections.iter_mut().take(4) {
+        for _ in 0..256 {
+            let mut ready = send.clone().ready().await.unwrap();
+            let (response, body) = ready
+                .send_request(
+                    grpc_request(&server.addr, "/prac.v1.Prac/StepStream"),
+                    false,
+                )
+                .unwrap();
+            streams.push((response, body));
+        }
+    }
+    // A 257th on one connection waits for a free stream.
+    let mut extra = connections[0].0.clone();
+    let refused = tokio::time::timeout(Duration::from_millis(500), async {
+        let mut ready = extra.clone().ready().await.unwrap();
+        ready
+            .send_request(
+                grpc_request(&server.addr, "/prac.v1.Prac/StepStream"),
+                false,
+            )
+            .unwrap()
+    })
+    .await;
+    let _ = &mut extra;
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let with_streams = rss_kib(pid);
+    println!(
+        "header-only StepStreams: 1024 held on 4 connections, {:.1} KiB each; a 257th on one connection {}",
+        (with_streams - with_connections) as f64 / 1024.0,
+        if refused.is_err() {
+            "waits"
+        } else {
+            "was accepted"
+        }
+    );
+    drop(streams);
+    drop(connections);
+    drop(server);
+
+    // TLS handshakes per second: 2 clients back to back, for 3 s, on the same 2 cores.
+    let server = Server::start(
+        bundles.path(),
+        &[
+            "--tls-cert",
+            cert.to_str().unwrap(),
+            "--tls-key",
+            key.to_str().unwrap(),
+        ],
+    );
+    server.wait_serving().await;
+    let mut roots = tokio_rustls::rustls::RootCertStore::empty();
+    use tokio_rustls::rustls::pki_types::CertificateDer;
+    use tokio_rustls::rustls::pki_types::pem::PemObject;
+    for c in CertificateDer::pem_file_iter(&cert).unwrap() {
+        roots.add(c.unwrap()).unwrap();
+    }
+    let provider = std::sync::Arc::new(tokio_rustls::rustls::crypto::ring::default_provider());
+    let mut config = tokio_rustls::rustls::ClientConfig::builder_with_provider(provider)
+        .with_safe_default_protocol_versions()
+        .unwrap()
+        .with_root_certificates(roots)
+        .with_no_client_auth();
+    config.alpn_protocols = vec![b"h2".to_vec()];
+    // Fresh sessions only: no resumption.
+    config.resumption = tokio_rustls::rustls::client::Resumption::disabled();
+    let connector = tokio_rustls::TlsConnector::from(std::sync::Arc::new(config));
+    let until = Instant::now() + Duration::from_secs(3);
+    let mut tasks = Vec::new();
+    for _ in 0..2 {
+        let connector = connector.clone();
+        let addr = server.addr.clone();
+        tasks.push(tokio::spawn(async move {
+            let mut done = 0u64;
+            while Instant::now() < until {
+                let tcp = tokio::net::TcpStream::connect(&addr).await.unwrap();
+                let name = "localhost".try_into().unwrap();
+                connector.connect(name, tcp).await.unwrap();
+                done += 1;
+            }
+            done
+        }));
+    }
+    let mut total = 0;
+    for task in tasks {
+        total += task.await.unwrap();
+    }
+    println!(
+        "TLS handshakes: {:.0}/s (2 clients on the same 2 cores, full handshakes)",
+        total as f64 / 3.0
+    );
+}

@@ -33,8 +33,8 @@ async fn steps_under_deadlines(server: &Server, sessions: usize, steps: usize) {
                     observation: vec![0.01 * (i % 7) as f32; 15],
                     new_episode: false,
                 };
-                // 50 us to 2.5 ms: some steps make it, some do not.
-                let timeout = format!("{}u", 50 + ((i * 37 + k * 11) % 50) * 50);
+                // 1 ns to 9.8 ms: some steps make it, some do not.
+                let timeout = format!("{}n", 1 + ((i * 37 + k * 11) % 50) * 200_000);
                 let path = "/prac.v1.Prac/Step";
                 match h2_unary(&mut send, &addr, path, &request, Some(&timeout))
                     .await

@@ -102,6 +102,33 @@ async fn sighup_reloads_bundles_without_touching_open_sessions() {
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
     assert_eq!(hashes(&mut client).await, after);
+
+    // A hostile file (a manifest that declares a billion critics) is one more bad bundle.
+    let policy = toy_policy("toy", 6);
+    let mut manifest = policy.manifest.clone();
+    manifest.critic.n_critics = 1_000_000_000;
+    let text = serde_json::to_string(&manifest).unwrap();
+    std::fs::write(
+        dir.join("toy.safetensors"),
+        bundle::to_bytes_with_manifest(&policy, &text).unwrap(),
+    )
+    .unwrap();
+    server.signal("HUP");
+    let start = Instant::now();
+    while server.stderr().matches("reload: bad bundle").count() < 2 {
+        assert!(
+            start.elapsed() < Duration::from_secs(20),
+            "{}",
+            server.stderr()
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert!(
+        server
+            .stderr()
+            .contains("critic.qf2.0.weight: missing tensor")
+    );
+    assert_eq!(hashes(&mut client).await, after);
     let third = common::open_default_session(&mut client, "toy").await;
     assert_eq!(first_action(&mut client, &third, &obs).await, new_action);
     assert_eq!(

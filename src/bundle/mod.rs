@@ -80,12 +80,33 @@ pub fn load(path: &Path) -> Result<Policy, BundleError> {
             format!("is {size} bytes, more than the {MAX_BUNDLE_BYTES} allowed"),
         ));
     }
-    let mut file =
-        std::fs::File::open(path).map_err(|e| err("file", format!("cannot read: {e}")))?;
-    check_header_of_file(&mut file, size, path)?;
+    let file = std::fs::File::open(path).map_err(|e| err("file", format!("cannot read: {e}")))?;
+    from_reader(file, size, path)
+}
+
+/// Validates and builds a policy from a reader of `size` bytes: the header first, then, if it
+/// holds, the rest. `path` only names the source in errors.
+pub fn from_reader<R: std::io::Read + std::io::Seek>(
+    mut reader: R,
+    size: u64,
+    path: &Path,
+) -> Result<Policy, BundleError> {
+    let err = |reason: String| BundleError {
+        file: path.to_path_buf(),
+        field: "file".into(),
+        reason,
+    };
+    check_header(&mut reader, size, path)?;
     let mut bytes = Vec::with_capacity(size as usize);
-    std::io::Read::read_to_end(&mut file, &mut bytes)
-        .map_err(|e| err("file", format!("cannot read: {e}")))?;
+    reader
+        .read_to_end(&mut bytes)
+        .map_err(|e| err(format!("cannot read: {e}")))?;
+    if bytes.len() as u64 != size {
+        return Err(err(format!(
+            "changed while read: {} bytes, {size} before",
+            bytes.len()
+        )));
+    }
     from_bytes(&bytes, path)
 }
 
@@ -115,14 +136,13 @@ struct HeaderTensor {
     data_offsets: (u64, u64),
 }
 
-/// Reads the header from the start of `file` (leaving the file at its start) and checks the
+/// Reads the header from the start of `file` (leaving the reader at its start) and checks the
 /// manifest and the declared tensors against each other and against the file's size.
-fn check_header_of_file(
-    file: &mut std::fs::File,
+fn check_header<R: std::io::Read + std::io::Seek>(
+    file: &mut R,
     size: u64,
     path: &Path,
 ) -> Result<(), BundleError> {
-    use std::io::{Read, Seek};
     let err = |field: &str, reason: String| BundleError {
         file: path.to_path_buf(),
         field: field.to_string(),

@@ -218,9 +218,10 @@ impl Worker {
             requests.push(work.request);
             replies.push(work.reply);
         }
-        let mut answers: Vec<Answer> = Vec::with_capacity(slots.len());
+        // Answered under the sessions' locks, so that a step taken back (its caller gave up) is
+        // never seen applied by another call (CloseSession, GetPlan) in between.
+        let mut sessions: Vec<_> = slots.iter().map(|slot| slot.lock()).collect();
         {
-            let mut sessions: Vec<_> = slots.iter().map(|slot| slot.lock()).collect();
             let begun: Vec<Result<Begun, Status>> = sessions
                 .iter()
                 .zip(&requests)
@@ -254,22 +255,22 @@ impl Worker {
             replan_batch(evaluator, &mut jobs, &mut self.scratch, &mut results);
             drop(jobs);
             let mut results = results.into_iter();
+            let mut answers: Vec<Answer> = Vec::with_capacity(sessions.len());
             for ((session, rng), begun) in sessions.iter_mut().zip(rngs).zip(begun) {
-                let answer = begun.and_then(|begun| {
+                answers.push(begun.and_then(|begun| {
                     let outcome = results
                         .next()
                         .expect("one result per job")
                         .map_err(|e| Status::from(super::session::StepError::from(e)))?;
                     let report = session.commit(&begun, outcome, rng);
                     Ok((session.response(&report), report.served))
-                });
-                answers.push(answer);
+                }));
             }
-        }
-        for ((reply, answer), slot) in replies.into_iter().zip(answers).zip(&slots) {
-            // The caller gave up while this step was replanned: nobody will see its answer.
-            if let Err(Ok((_, served))) = reply.send(answer) {
-                slot.lock().take_back(served);
+            for ((reply, answer), session) in replies.into_iter().zip(answers).zip(&mut sessions) {
+                // The caller gave up while this step was replanned: nobody will see its answer.
+                if let Err(Ok((_, served))) = reply.send(answer) {
+                    session.take_back(served);
+                }
             }
         }
     }

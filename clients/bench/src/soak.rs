@@ -49,6 +49,10 @@ struct Args {
     /// Clients that open a StepStream and a WatchPlan and never read them.
     #[arg(long, default_value_t = 2)]
     stalled: usize,
+    /// Connections that never speak (no TLS, no HTTP/2 preface), reopened whenever the server
+    /// closes them: its handshake timeout must close each.
+    #[arg(long, default_value_t = 4)]
+    silent: usize,
     /// Share of requests that are deliberately bad.
     #[arg(long, default_value_t = 0.05)]
     bad_fraction: f64,
@@ -78,6 +82,8 @@ struct Counts {
     refused: BTreeMap<String, u64>,
     sessions_opened: u64,
     sessions_abandoned: u64,
+    /// Silent connections the server closed.
+    silent_closed: u64,
 }
 
 struct Shared {
@@ -132,6 +138,7 @@ struct Report {
     requests_per_s: f64,
     sessions_opened: u64,
     sessions_abandoned: u64,
+    silent_closed: u64,
     refused: BTreeMap<String, u64>,
     unexpected: BTreeMap<String, u64>,
     latency_us: BTreeMap<String, u64>,
@@ -225,7 +232,29 @@ async fn churn(
         let steps = rng.random_range(1..200);
         if rng.random_bool(0.5) {
             // Unary, with bad requests between good ones.
+            let mut last_step: Option<u64> = None;
+            // Whether a step since the last answered one may have been applied unseen (the
+            // client gave up on it by itself while its answer was on the way).
+            let mut unknown = false;
             for k in 0..steps {
+                if k > 0 && rng.random_bool(bad) {
+                    // A deadline too tight to meet: the server answers DEADLINE_EXCEEDED and
+                    // applies nothing, or tonic gives up first (CANCELLED).
+                    let mut request =
+                        tonic::Request::new(step(&id, observation(&mut rng, obs_dim), false));
+                    request.set_timeout(Duration::from_micros(rng.random_range(1..300)));
+                    match client.step(request).await {
+                        Ok(response) => last_step = Some(response.into_inner().step),
+                        Err(status) if status.code() == Code::DeadlineExceeded => {
+                            shared.refused("tight deadline", Code::DeadlineExceeded, Err(status));
+                        }
+                        Err(status) if status.code() == Code::Cancelled => {
+                            shared.refused("tight deadline", Code::Cancelled, Err(status));
+                            unknown = true;
+                        }
+                        Err(status) => shared.unexpected("tight deadline", &status),
+                    }
+                }
                 if rng.random_bool(bad) {
                     let (what, request, code) = match rng.random_range(0..3) {
                         0 => (
@@ -252,7 +281,22 @@ async fn churn(
                     .step(step(&id, observation(&mut rng, obs_dim), k == 0))
                     .await
                 {
-                    Ok(_) => shared.good(start.elapsed()),
+                    Ok(response) => {
+                        shared.good(start.elapsed());
+                        let now = response.into_inner().step;
+                        if let Some(last) = last_step
+                            && !unknown
+                            && now != last + 1
+                        {
+                            // A step the server refused moved the session on.
+                            shared.unexpected(
+                                "step continuity",
+                                &tonic::Status::internal(format!("step {now} after {last}")),
+                            );
+                        }
+                        last_step = Some(now);
+                        unknown = false;
+                    }
                     Err(status) => shared.unexpected("unary step", &status),
                 }
             }
@@ -347,6 +391,29 @@ async fn stall(
     drop((watch, stream));
 }
 
+/// A client that connects and never speaks, again each time the server closes it.
+async fn silent(addr: String, until: Instant, shared: Arc<Shared>) {
+    use tokio::io::AsyncReadExt;
+    while Instant::now() < until {
+        let Ok(mut tcp) = tokio::net::TcpStream::connect(&addr).await else {
+            tokio::time::sleep(Duration::from_millis(100)).await;
+            continue;
+        };
+        let mut buf = [0u8; 1024];
+        // Whatever the server sends (SETTINGS, GOAWAY) is read; it must close the connection.
+        loop {
+            match tokio::time::timeout_at(until.into(), tcp.read(&mut buf)).await {
+                Err(_) => return,
+                Ok(Ok(0)) | Ok(Err(_)) => {
+                    shared.counts.lock().unwrap().silent_closed += 1;
+                    break;
+                }
+                Ok(Ok(_)) => {}
+            }
+        }
+    }
+}
+
 fn main() -> std::process::ExitCode {
     let args = Args::parse();
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -373,10 +440,17 @@ async fn run(args: Args) -> anyhow::Result<Report> {
     let (addr, pid) = match &args.server {
         Some(addr) => (addr.clone(), args.server_pid),
         None => {
-            let args: Vec<String> = ["--session-ttl", "2s", "--max-sessions", "4096"]
-                .iter()
-                .map(|s| s.to_string())
-                .collect();
+            let args: Vec<String> = [
+                "--session-ttl",
+                "2s",
+                "--max-sessions",
+                "4096",
+                "--handshake-timeout",
+                "2s",
+            ]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
             let local = LocalServer::start(args_prac_bin.as_deref(), &args).await?;
             let found = (local.server.addr.clone(), local.server.pid());
             _local = Some(local);
@@ -423,6 +497,9 @@ async fn run(args: Args) -> anyhow::Result<Report> {
             shared.clone(),
         )));
     }
+    for _ in 0..args.silent {
+        tasks.push(tokio::spawn(silent(addr.clone(), until, shared.clone())));
+    }
     for _ in 0..args.stalled {
         tasks.push(tokio::spawn(stall(
             connect(&addr).await?,
@@ -463,7 +540,15 @@ async fn run(args: Args) -> anyhow::Result<Report> {
         }
     }
     let duration = start.elapsed().as_secs_f64();
-    let counts = std::mem::take(&mut *shared.counts.lock().unwrap());
+    let mut counts = std::mem::take(&mut *shared.counts.lock().unwrap());
+    // The server's handshake timeout is at most 30 s unless set otherwise.
+    if args.silent > 0 && duration > 35.0 && counts.silent_closed == 0 {
+        counts.unexpected.insert(
+            "silent connections: none closed by the server (is its --handshake-timeout over 30 s?)"
+                .into(),
+            1,
+        );
+    }
     let latency = shared.latency.lock().unwrap().clone();
     let warm = args.duration.as_secs_f64() * args.warmup_fraction;
     let after: Vec<u64> = memory
@@ -477,6 +562,7 @@ async fn run(args: Args) -> anyhow::Result<Report> {
         requests_per_s: counts.good as f64 / duration,
         sessions_opened: counts.sessions_opened,
         sessions_abandoned: counts.sessions_abandoned,
+        silent_closed: counts.silent_closed,
         refused: counts.refused,
         unexpected: counts.unexpected,
         latency_us: [50.0, 99.0, 99.9, 100.0]
