@@ -46,10 +46,13 @@ def write_toy_bundle(directory: pathlib.Path, name: str = "pendulum", *, model: 
 
 
 class Server:
-    def __init__(self, bundles: pathlib.Path, *args: str) -> None:
-        self.stderr_path = bundles / "server.log"
+    def __init__(
+        self, bundles: pathlib.Path, *args: str, listen: str = "127.0.0.1:0", log: str = "server.log", token: str | None = None
+    ) -> None:
+        self.token = token
+        self.stderr_path = bundles / log
         self.process = subprocess.Popen(
-            [prac_bin(), "serve", "--listen", "127.0.0.1:0", "--bundles", str(bundles), *args],
+            [prac_bin(), "serve", "--listen", listen, "--bundles", str(bundles), *args],
             stdout=subprocess.PIPE,
             stderr=open(self.stderr_path, "w"),
             text=True,
@@ -63,7 +66,7 @@ class Server:
 
     def _wait_loaded(self) -> None:
         deadline = time.monotonic() + 20
-        with Client(self.address, timeout=2) as client:
+        with Client(self.address, timeout=2, token=self.token) as client:
             while True:
                 try:
                     client.policies()
@@ -82,6 +85,11 @@ class Server:
 
     def resume(self) -> None:
         os.kill(self.process.pid, signal.SIGCONT)
+
+    def kill(self) -> None:
+        """SIGKILL: no drain, every session lost."""
+        self.process.kill()
+        self.process.wait(10)
 
     def stop(self) -> None:
         self.process.terminate()

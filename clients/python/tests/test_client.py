@@ -141,10 +141,19 @@ def test_expired_and_overloaded(start_server) -> None:  # type: ignore[no-untype
         import time
 
         time.sleep(0.8)
-        with pytest.raises(prac_client.SessionExpired, match="expired at"):
-            session.step([0.0, 0.0, 0.0])
         # Its slot is free again.
         client.session("pendulum").close()
+        # With patience, an expired session is re-opened with its plan and goes on.
+        resumed = session.step([0.0, 0.0, 0.0])
+        assert (resumed.step, session.resumes) == (1, 1)
+        session.close()
+    with Client(server.address, timeout=10, patience=0) as client:
+        session = client.session("pendulum")
+        session.step([0.0, 0.0, 0.0])
+        time.sleep(0.8)
+        # Without patience, the client says so.
+        with pytest.raises(prac_client.SessionExpired, match="expired at"):
+            session.step([0.0, 0.0, 0.0])
 
 
 def test_unavailable_server_is_a_clear_error() -> None:

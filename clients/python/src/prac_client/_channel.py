@@ -22,10 +22,15 @@ class TlsConfig:
 
 Tls = TlsConfig | grpc.ChannelCredentials | bool | None
 
-# Generous limits; the server enforces its own (--max-message-bytes).
+# Generous limits; the server enforces its own (--max-message-bytes). A server that restarts is
+# tried again within 0.1-1 s (gRPC's default backoff starts at 1 s and grows to 120 s), so a
+# session resumes soon after it is back.
 CHANNEL_OPTIONS: Sequence[tuple[str, int]] = (
     ("grpc.max_receive_message_length", 64 << 20),
     ("grpc.max_send_message_length", 64 << 20),
+    ("grpc.initial_reconnect_backoff_ms", 100),
+    ("grpc.min_reconnect_backoff_ms", 100),
+    ("grpc.max_reconnect_backoff_ms", 1000),
 )
 
 
@@ -40,6 +45,12 @@ def credentials(tls: Tls) -> grpc.ChannelCredentials | None:
     return tls
 
 
-def metadata(token: str | None) -> tuple[tuple[str, str], ...]:
-    """The bearer token as call metadata (servers with auth enabled check it)."""
-    return (("authorization", f"Bearer {token}"),) if token else ()
+def metadata(token: str | None, affinity: str | None = None) -> tuple[tuple[str, str], ...]:
+    """Call metadata: the bearer token (servers with auth enabled check it) and the affinity key
+    (a proxy such as deploy/nginx keeps a client's calls on one replica by it)."""
+    entries: list[tuple[str, str]] = []
+    if token:
+        entries.append(("authorization", f"Bearer {token}"))
+    if affinity:
+        entries.append(("x-prac-affinity", affinity))
+    return tuple(entries)

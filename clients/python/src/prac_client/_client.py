@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import queue
 import threading
+import time
 from typing import Any, Iterator
 
 import grpc
 import numpy as np
 import numpy.typing as npt
 
-from prac_client import errors
+from prac_client import _resume, errors
 from prac_client._channel import CHANNEL_OPTIONS, Tls, credentials, metadata
 from prac_client._options import Growth, session_options
 from prac_client._proto.prac.v1 import prac_pb2 as pb
@@ -31,6 +32,12 @@ class Client:
     >>> with Client("127.0.0.1:50051") as client:
     ...     with client.session("pendulum", epsilon_coef=0.005) as session:
     ...         result = session.step(obs)
+
+    `token` and `tls` secure every call; `timeout` (seconds) bounds each. `affinity` sends
+    `x-prac-affinity` with every call, so a proxy keeps this client on one replica. Sessions
+    survive losing their server: on a session the server no longer knows, or while no server
+    answers, a step re-opens the session with the plan it holds and is sent again, for up to
+    `patience` seconds.
     """
 
     def __init__(
@@ -40,6 +47,8 @@ class Client:
         token: str | None = None,
         tls: Tls = None,
         timeout: float | None = None,
+        affinity: str | None = None,
+        patience: float = 10.0,
     ) -> None:
         creds = credentials(tls)
         if creds is None:
@@ -47,9 +56,10 @@ class Client:
         else:
             self._channel = grpc.secure_channel(target, creds, options=CHANNEL_OPTIONS)
         self._stub: Any = pb_grpc.PracStub(self._channel)  # type: ignore[no-untyped-call]
-        self._metadata = metadata(token)
+        self._metadata = metadata(token, affinity)
         self.timeout = timeout
         self.target = target
+        self.patience = patience
 
     def _call(self, rpc: str, request: Any) -> Any:
         try:
@@ -89,7 +99,7 @@ class Client:
             sampled=sampled,
         )
         opened = self._call("OpenSession", pb.OpenSessionRequest(policy=policy, options=options))
-        return Session(self, opened)
+        return Session(self, opened, policy)
 
     def close(self) -> None:
         self._channel.close()
@@ -137,7 +147,7 @@ class Session:
     """A session on one policy, holding the server-side plan. Steps go over one bidirectional
     stream, opened on the first step and again after an error."""
 
-    def __init__(self, client: Client, opened: pb.OpenSessionResponse) -> None:
+    def __init__(self, client: Client, opened: pb.OpenSessionResponse, policy: str) -> None:
         self._client = client
         self.id: str = opened.session_id
         self.policy = PolicyInfo.from_proto(opened.policy)
@@ -145,25 +155,75 @@ class Session:
         self._stream: _StepStream | None = None
         self._new_episode = False
         self.closed = False
+        self._policy_name = policy
+        self._options_in_force = _resume.options_in_force(opened.options)
+        # The plan the last answer committed: what a new server resumes from.
+        self._held: pb.Plan | None = None
+        self.resumes = 0
+        """Times the session was re-opened with its plan on a server that did not know it."""
 
     def step(self, observation: ArrayLike, *, new_episode: bool = False) -> StepResult:
-        """Sends the observed state; returns the action to execute now and the forecast."""
-        request = pb.StepRequest(
-            session_id=self.id,
-            observation=observation_list(observation),
-            new_episode=new_episode or self._new_episode,
-        )
+        """Sends the observed state; returns the action to execute now and the forecast. If the
+        server lost the session or none answers, resumes it (see `Client`) and goes on."""
+        if self.closed:
+            raise errors.SessionNotFound(
+                f"session '{self.id}' was closed by this client; open a new one with client.session(...)"
+            )
+        observed = observation_list(observation)
+        new_episode = new_episode or self._new_episode
+        give_up = time.monotonic() + self._client.patience
+        while True:
+            request = pb.StepRequest(session_id=self.id, observation=observed, new_episode=new_episode)
+            try:
+                response = self._send(request)
+            except _resume.RESUMABLE:
+                if time.monotonic() > give_up:
+                    raise
+                recovered = self._recover()
+                if recovered is None:
+                    continue
+                response = recovered
+            self._held = _resume.held_plan(response)
+            self._new_episode = False
+            return StepResult.from_proto(response, self.policy.act_dim, self.policy.obs_dim)
+
+    def _send(self, request: pb.StepRequest) -> pb.StepResponse:
         if self._stream is None:
             self._stream = _StepStream(self._client)
         try:
-            response = self._stream.step(request, self._client.timeout)
+            return self._stream.step(request, self._client.timeout)
         except errors.PracError:
             # gRPC ends a stream at its first error; the session itself is intact.
             self._stream.close()
             self._stream = None
             raise
-        self._new_episode = False
-        return StepResult.from_proto(response, self.policy.act_dim, self.policy.obs_dim)
+
+    def _recover(self) -> pb.StepResponse | None:
+        """After a failed step: the step's answer if the server applied it after all (its plan
+        moved on), else None once a session exists to send it again to."""
+        try:
+            now = self._client._call("GetPlan", pb.GetPlanRequest(session_id=self.id))
+        except (errors.SessionNotFound, errors.SessionExpired):
+            self._reopen()
+            return None
+        except errors.ServerUnavailable:
+            time.sleep(_resume.RETRY_PAUSE)
+            return None
+        if _resume.applied(self._held, now):
+            return _resume.answer_from_plan(self._held, now)
+        return None
+
+    def _reopen(self) -> None:
+        request = pb.OpenSessionRequest(policy=self._policy_name, options=self._options_in_force)
+        if self._held is not None:
+            request.resume.CopyFrom(self._held)
+        try:
+            opened = self._client._call("OpenSession", request)
+        except errors.ServerUnavailable:
+            time.sleep(_resume.RETRY_PAUSE)
+            return
+        self.id = opened.session_id
+        self.resumes += 1
 
     def reset(self, observation: ArrayLike | None = None) -> StepResult | None:
         """Starts a new episode (Algorithm 1, line 4): the old plan is dropped and t restarts at

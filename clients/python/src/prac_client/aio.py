@@ -14,7 +14,7 @@ import grpc
 import grpc.aio
 from grpc.aio import EOF  # type: ignore[attr-defined]
 
-from prac_client import errors
+from prac_client import _resume, errors
 from prac_client._channel import CHANNEL_OPTIONS, Tls, credentials, metadata
 from prac_client._client import ArrayLike, observation_list
 from prac_client._options import Growth, session_options
@@ -26,6 +26,9 @@ __all__ = ["Client", "Session"]
 
 
 class Client:
+    """The asyncio twin of `prac_client.Client`, with the same options (token, tls, timeout,
+    affinity, patience) and sessions that resume the same way."""
+
     def __init__(
         self,
         target: str,
@@ -33,6 +36,8 @@ class Client:
         token: str | None = None,
         tls: Tls = None,
         timeout: float | None = None,
+        affinity: str | None = None,
+        patience: float = 10.0,
     ) -> None:
         creds = credentials(tls)
         if creds is None:
@@ -40,9 +45,10 @@ class Client:
         else:
             self._channel = grpc.aio.secure_channel(target, creds, options=CHANNEL_OPTIONS)
         self._stub: Any = pb_grpc.PracStub(self._channel)  # type: ignore[no-untyped-call]
-        self._metadata = metadata(token)
+        self._metadata = metadata(token, affinity)
         self.timeout = timeout
         self.target = target
+        self.patience = patience
 
     async def _call(self, rpc: str, request: Any) -> Any:
         try:
@@ -96,7 +102,7 @@ class _Opening:
 
     async def _open(self) -> Session:
         opened = await self._client._call("OpenSession", self._request)
-        return Session(self._client, opened)
+        return Session(self._client, opened, self._request.policy)
 
     def __await__(self) -> Generator[Any, None, Session]:
         return self._open().__await__()
@@ -114,7 +120,7 @@ class _Opening:
 
 
 class Session:
-    def __init__(self, client: Client, opened: pb.OpenSessionResponse) -> None:
+    def __init__(self, client: Client, opened: pb.OpenSessionResponse, policy: str) -> None:
         self._client = client
         self.id: str = opened.session_id
         self.policy = PolicyInfo.from_proto(opened.policy)
@@ -122,13 +128,63 @@ class Session:
         self._stream: Any = None
         self._new_episode = False
         self.closed = False
+        self._policy_name = policy
+        self._options_in_force = _resume.options_in_force(opened.options)
+        self._held: pb.Plan | None = None
+        self.resumes = 0
+        """Times the session was re-opened with its plan on a server that did not know it."""
 
     async def step(self, observation: ArrayLike, *, new_episode: bool = False) -> StepResult:
-        request = pb.StepRequest(
-            session_id=self.id,
-            observation=observation_list(observation),
-            new_episode=new_episode or self._new_episode,
-        )
+        """As `prac_client.Session.step`, resuming the same way."""
+        if self.closed:
+            raise errors.SessionNotFound(
+                f"session '{self.id}' was closed by this client; open a new one with client.session(...)"
+            )
+        observed = observation_list(observation)
+        new_episode = new_episode or self._new_episode
+        loop = asyncio.get_running_loop()
+        give_up = loop.time() + self._client.patience
+        while True:
+            request = pb.StepRequest(session_id=self.id, observation=observed, new_episode=new_episode)
+            try:
+                response = await self._send(request)
+            except _resume.RESUMABLE:
+                if loop.time() > give_up:
+                    raise
+                recovered = await self._recover()
+                if recovered is None:
+                    continue
+                response = recovered
+            self._held = _resume.held_plan(response)
+            self._new_episode = False
+            return StepResult.from_proto(response, self.policy.act_dim, self.policy.obs_dim)
+
+    async def _recover(self) -> pb.StepResponse | None:
+        try:
+            now = await self._client._call("GetPlan", pb.GetPlanRequest(session_id=self.id))
+        except (errors.SessionNotFound, errors.SessionExpired):
+            await self._reopen()
+            return None
+        except errors.ServerUnavailable:
+            await asyncio.sleep(_resume.RETRY_PAUSE)
+            return None
+        if _resume.applied(self._held, now):
+            return _resume.answer_from_plan(self._held, now)
+        return None
+
+    async def _reopen(self) -> None:
+        request = pb.OpenSessionRequest(policy=self._policy_name, options=self._options_in_force)
+        if self._held is not None:
+            request.resume.CopyFrom(self._held)
+        try:
+            opened = await self._client._call("OpenSession", request)
+        except errors.ServerUnavailable:
+            await asyncio.sleep(_resume.RETRY_PAUSE)
+            return
+        self.id = opened.session_id
+        self.resumes += 1
+
+    async def _send(self, request: pb.StepRequest) -> Any:
         if self._stream is None:
             self._stream = self._client._stub.StepStream(metadata=self._client._metadata)
         stream = self._stream
@@ -148,8 +204,7 @@ class Session:
         except errors.PracError:
             self._drop_stream()
             raise
-        self._new_episode = False
-        return StepResult.from_proto(response, self.policy.act_dim, self.policy.obs_dim)
+        return response
 
     def _drop_stream(self) -> None:
         if self._stream is not None:

@@ -62,6 +62,11 @@ class Unauthenticated(PracError):
     """The server wants a (valid) bearer token."""
 
 
+# What gRPC's core says, as INTERNAL, when the connection under a call broke (the server died or
+# a proxy reset the stream): the server is gone, not wrong.
+_BROKEN_TRANSPORT = ("Stream removed", "RST_STREAM", "Internal error from Core", "Socket closed")
+
+
 def from_rpc_error(error: grpc.RpcError, rpc: str) -> PracError:
     """Maps a failed call of `rpc` (e.g. "OpenSession", "Step") to its exception."""
     code: grpc.StatusCode | None = error.code() if hasattr(error, "code") else None
@@ -80,6 +85,8 @@ def from_rpc_error(error: grpc.RpcError, rpc: str) -> PracError:
     elif code == grpc.StatusCode.OUT_OF_RANGE:
         kind = MessageTooLarge
     elif code in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.CANCELLED):
+        kind = ServerUnavailable
+    elif code == grpc.StatusCode.INTERNAL and any(m in message for m in _BROKEN_TRANSPORT):
         kind = ServerUnavailable
     elif code == grpc.StatusCode.DEADLINE_EXCEEDED:
         kind = DeadlineExceeded
