@@ -172,11 +172,19 @@ fn check_header<R: std::io::Read + std::io::Seek>(
         data_end = data_end.max(info.data_offsets.1);
         tensors.insert(name, (info.dtype, info.shape));
     }
-    if 8 + n + data_end != size {
-        return Err(header_err(format!(
-            "its tensors end at byte {} but the file has {size} bytes",
-            8 + n + data_end
-        )));
+    // Offsets come from the file: added without overflow.
+    match (8 + n).checked_add(data_end) {
+        Some(end) if end == size => {}
+        Some(end) => {
+            return Err(header_err(format!(
+                "its tensors end at byte {end} but the file has {size} bytes"
+            )));
+        }
+        None => {
+            return Err(header_err(format!(
+                "a tensor ends at byte {data_end}, past any file"
+            )));
+        }
     }
     let manifest_json = metadata
         .as_ref()

@@ -357,6 +357,15 @@ fn a_file_is_checked_by_its_header_before_it_is_read() {
         "{e}"
     );
 
+    // A tensor whose offsets would overflow the file position.
+    let huge = dir.path().join("huge-offsets.safetensors");
+    let header = br#"{"t":{"dtype":"F32","shape":[1],"data_offsets":[0,18446744073709551615]}}"#;
+    let mut bytes_huge = (header.len() as u64).to_le_bytes().to_vec();
+    bytes_huge.extend_from_slice(header);
+    std::fs::write(&huge, &bytes_huge).unwrap();
+    let e = load(&huge).unwrap_err();
+    assert!(e.reason.contains("past any file"), "{e}");
+
     // A header longer than the file.
     let long = dir.path().join("long.safetensors");
     std::fs::write(&long, 1_000_000u64.to_le_bytes()).unwrap();

@@ -11,7 +11,7 @@ from typing import Callable, Iterator
 
 import pytest
 
-from prac_client import Client, ServerUnavailable
+from prac_client import Client, ServerUnavailable, TlsConfig
 from prac_client.bundle import from_sb3_state_dict, random_model, random_sb3_state_dict, write_bundle
 
 REPO = pathlib.Path(__file__).resolve().parents[3]
@@ -47,9 +47,16 @@ def write_toy_bundle(directory: pathlib.Path, name: str = "pendulum", *, model: 
 
 class Server:
     def __init__(
-        self, bundles: pathlib.Path, *args: str, listen: str = "127.0.0.1:0", log: str = "server.log", token: str | None = None
+        self,
+        bundles: pathlib.Path,
+        *args: str,
+        listen: str = "127.0.0.1:0",
+        log: str = "server.log",
+        token: str | None = None,
+        tls: TlsConfig | None = None,
     ) -> None:
         self.token = token
+        self.tls = tls
         self.stderr_path = bundles / log
         self.process = subprocess.Popen(
             [prac_bin(), "serve", "--listen", listen, "--bundles", str(bundles), *args],
@@ -66,7 +73,9 @@ class Server:
 
     def _wait_loaded(self) -> None:
         deadline = time.monotonic() + 20
-        with Client(self.address, timeout=2, token=self.token) as client:
+        # A TLS certificate names localhost, not 127.0.0.1.
+        target = self.address.replace("127.0.0.1", "localhost") if self.tls else self.address
+        with Client(target, timeout=2, token=self.token, tls=self.tls) as client:
             while True:
                 try:
                     client.policies()

@@ -61,13 +61,19 @@ def uninterrupted(bundles: pathlib.Path, servers: list[Server]) -> list[StepResu
 
 
 def restart_later(
-    bundles: pathlib.Path, address: str, servers: list[Server], delay: float, *args: str, token: str | None = None
+    bundles: pathlib.Path,
+    address: str,
+    servers: list[Server],
+    delay: float,
+    *args: str,
+    token: str | None = None,
+    tls: prac_client.TlsConfig | None = None,
 ) -> threading.Thread:
     """Starts a new server on `address` after `delay` seconds (meanwhile no server answers)."""
 
     def start() -> None:
         time.sleep(delay)
-        servers.append(Server(bundles, *args, listen=address, log="restarted.log", token=token))
+        servers.append(Server(bundles, *args, listen=address, log="restarted.log", token=token, tls=tls))
 
     thread = threading.Thread(target=start)
     thread.start()
@@ -83,24 +89,46 @@ def check_episode(results: list[StepResult], reference: list[StepResult]) -> Non
             np.testing.assert_allclose(r.action, results[t - 1].forecast_actions[1], atol=1e-5)
 
 
-@pytest.mark.parametrize("auth", [False, True])
-def test_a_session_survives_its_server_being_killed_and_restarted(auth: bool, bundles: pathlib.Path, servers: list[Server]) -> None:
+def self_signed(directory: pathlib.Path) -> tuple[pathlib.Path, pathlib.Path]:
+    cert, key = directory / "cert.pem", directory / "key.pem"
+    subprocess.run(
+        ["openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"]
+        + ["-keyout", str(key), "-out", str(cert), "-days", "1", "-subj", "/CN=localhost"]
+        + ["-addext", "subjectAltName=DNS:localhost"],
+        check=True,
+        capture_output=True,
+    )
+    return cert, key
+
+
+@pytest.mark.parametrize("security", ["plaintext", "token", "tls"])
+def test_a_session_survives_its_server_being_killed_and_restarted(security: str, bundles: pathlib.Path, servers: list[Server]) -> None:
     reference = uninterrupted(bundles, servers)
-    address = f"127.0.0.1:{free_port()}"
-    token = "a-token-of-sixteen-or-more"
+    port = free_port()
+    address = f"127.0.0.1:{port}"
+    target = address
+    token = "a-token-of-sixteen-or-more" if security == "token" else None
+    tls: prac_client.TlsConfig | None = None
     args: tuple[str, ...] = ()
-    if auth:
-        # The token goes with the re-opened session too.
-        (bundles / "tokens").write_text(token + "\n")
+    # The token and TLS go with the re-opened session too.
+    if security == "token":
+        (bundles / "tokens").write_text(f"{token}\n")
         args = ("--auth-tokens", str(bundles / "tokens"))
-    first = Server(bundles, *args, listen=address, token=token if auth else None)
+    if security == "tls":
+        if shutil.which("openssl") is None:
+            pytest.skip("openssl is not installed, so the TLS restart test was skipped")
+        cert, key = self_signed(bundles)
+        args = ("--tls-cert", str(cert), "--tls-key", str(key))
+        tls = prac_client.TlsConfig(root_certificates=cert.read_bytes())
+        target = f"localhost:{port}"
+    first = Server(bundles, *args, listen=address, token=token, tls=tls)
     servers.append(first)
     results: list[StepResult] = []
-    with Client(address, timeout=10, token=token if auth else None) as client, client.session("pendulum", **KEEP_ALL) as session:
+    with Client(target, timeout=10, token=token, tls=tls) as client, client.session("pendulum", **KEEP_ALL) as session:
         for t, obs in enumerate(observations()):
             if t == KILL_AT:
                 first.kill()
-                restarting = restart_later(bundles, address, servers, 0.5, *args, token=token if auth else None)
+                restarting = restart_later(bundles, address, servers, 0.5, *args, token=token, tls=tls)
                 started = time.monotonic()
             results.append(session.step(obs, new_episode=t == 0))
             if t == KILL_AT:
