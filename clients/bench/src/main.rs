@@ -7,6 +7,7 @@
 //! --duration or --steps, and at the latest after a hard deadline.
 
 mod common;
+mod sim;
 
 use std::collections::{BTreeMap, VecDeque};
 use std::path::PathBuf;
@@ -35,27 +36,66 @@ enum Mode {
     Unary,
 }
 
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize)]
+#[serde(rename_all = "lowercase")]
+enum Workload {
+    /// Each session is a simulated robot of the policy's domain, the served action driving it.
+    Sim,
+    /// States visited by following the server's own model from random starts.
+    Model,
+}
+
+/// A duration such as "10s" or "500ms", or a plain number of seconds ("10").
+fn duration(text: &str) -> Result<Duration, String> {
+    match text.parse::<f64>() {
+        Ok(seconds) if seconds.is_finite() && seconds >= 0.0 => {
+            Ok(Duration::from_secs_f64(seconds))
+        }
+        Ok(_) => Err(format!("{text} is not a duration")),
+        Err(_) => humantime::parse_duration(text).map_err(|e| e.to_string()),
+    }
+}
+
 /// Load tester for prac serve.
 #[derive(Parser, Debug)]
 #[command(version, about)]
 struct Args {
-    /// Server address (host:port); without it a local prac serve is started for the run.
+    /// Server address (host:port or http://host:port); without it a local prac serve is started
+    /// for the run.
     #[arg(long)]
     server: Option<String>,
-    /// Policy to open sessions on [default: hopper-bench on the local server].
+    /// Process id of --server, for its CPU time per step (read from /proc) [default: the local
+    /// server's].
+    #[arg(long)]
+    server_pid: Option<u32>,
+    /// Policy to open sessions on [default: the only policy --server serves; hopper-bench on the
+    /// local server].
     #[arg(long)]
     policy: Option<String>,
+    /// What the sessions observe [default: sim when the policy's domain is one of prac's, else
+    /// model; --observations replays a file instead].
+    #[arg(long, value_enum)]
+    workload: Option<Workload>,
+    /// Open loop, per session: each robot steps at this control rate (Hz) whether or not its
+    /// answer came back; a step whose answer is late executes the action the last answer
+    /// committed for it. Needs --mode stream.
+    #[arg(long)]
+    rate_per_session: Option<f64>,
+    /// Write the observations the run sent (f32 `obs` [N, obs_dim], safetensors) for
+    /// --observations.
+    #[arg(long)]
+    save_observations: Option<PathBuf>,
     /// Concurrent sessions.
     #[arg(long, default_value_t = 1)]
     sessions: usize,
-    /// How long to measure, e.g. "10s" (ignored with --steps).
-    #[arg(long, value_parser = humantime::parse_duration, default_value = "5s")]
+    /// How long to measure, e.g. "10s" or 10 (seconds) (ignored with --steps).
+    #[arg(long, value_parser = duration, default_value = "5s")]
     duration: Duration,
     /// Total steps to measure instead of a duration.
     #[arg(long)]
     steps: Option<u64>,
     /// Unmeasured warm-up before measuring.
-    #[arg(long, value_parser = humantime::parse_duration, default_value = "500ms")]
+    #[arg(long, value_parser = duration, default_value = "500ms")]
     warmup: Duration,
     #[arg(long, value_enum, default_value_t = Mode::Stream)]
     mode: Mode,
@@ -94,6 +134,9 @@ struct Args {
 #[derive(Serialize)]
 struct Report {
     mode: Mode,
+    /// "sim", "model" or "file".
+    workload: String,
+    domain: String,
     sessions: usize,
     open_loop_rate: Option<f64>,
     seconds: f64,
@@ -104,6 +147,14 @@ struct Report {
     mean_forecast: f64,
     replans_per_step: f64,
     mean_plan_length: f64,
+    /// Old plan actions Replan tested per step (kept ones, and the one that broke the plan).
+    old_actions_tested_per_step: f64,
+    /// Open loop with the sim workload: robot steps whose answer had not come back in time.
+    late_steps: Option<u64>,
+    late_fraction: Option<f64>,
+    /// The server's CPU time (user + system, all threads) per measured step, when its process
+    /// is known.
+    server_cpu_us_per_step: Option<f64>,
 }
 
 #[derive(Serialize)]
@@ -123,7 +174,11 @@ struct Tally {
     f_t: u64,
     replans: u64,
     plan_length: u64,
+    tested: u64,
     steps: u64,
+    /// Open-loop robot steps whose answer was late, and on time.
+    late: u64,
+    on_time: u64,
 }
 
 impl Tally {
@@ -134,7 +189,10 @@ impl Tally {
             f_t: 0,
             replans: 0,
             plan_length: 0,
+            tested: 0,
             steps: 0,
+            late: 0,
+            on_time: 0,
         }
     }
     fn record(&mut self, latency: Duration, result: Result<&proto::StepResponse, &tonic::Status>) {
@@ -145,6 +203,7 @@ impl Tally {
                 self.f_t += r.f_t;
                 self.replans += u64::from(r.broke_at.is_some());
                 self.plan_length += r.forecast.len() as u64;
+                self.tested += u64::from(r.kept) + u64::from(r.broke_at.is_some());
             }
             Err(status) => {
                 *self
@@ -164,7 +223,10 @@ impl Tally {
         self.f_t += other.f_t;
         self.replans += other.replans;
         self.plan_length += other.plan_length;
+        self.tested += other.tested;
         self.steps += other.steps;
+        self.late += other.late;
+        self.on_time += other.on_time;
     }
 }
 
@@ -283,6 +345,28 @@ async fn observations(
     Ok(visited)
 }
 
+/// Opens a StepStream with its first request already queued: a server may send its response
+/// headers only with its first answer (grpcio does), so the request must not wait for them.
+async fn open_stream(
+    client: &mut PracClient<Channel>,
+    first: proto::StepRequest,
+) -> Result<
+    (
+        mpsc::Sender<proto::StepRequest>,
+        tonic::Streaming<proto::StepResponse>,
+    ),
+    tonic::Status,
+> {
+    let (tx, rx) = mpsc::channel(1024);
+    tx.try_send(first)
+        .expect("a new channel has room for one request");
+    let responses = client
+        .step_stream(ReceiverStream::new(rx))
+        .await?
+        .into_inner();
+    Ok((tx, responses))
+}
+
 fn request(session: &str, states: &[Vec<f32>], i: usize) -> proto::StepRequest {
     proto::StepRequest {
         session_id: session.to_string(),
@@ -329,26 +413,21 @@ async fn run_session(
             }
         }
         (Mode::Stream, None) => {
-            let (tx, rx) = mpsc::channel(1);
-            let mut responses = match client.step_stream(ReceiverStream::new(rx)).await {
-                Ok(r) => r.into_inner(),
-                Err(status) => {
-                    tally.record(Duration::ZERO, Err(&status));
-                    return tally;
-                }
-            };
-            let mut i = 0;
-            while budget.take(Instant::now()) {
-                let sent = Instant::now();
-                if tx
-                    .send(request(&session, &states, offset + i))
-                    .await
-                    .is_err()
-                {
-                    break;
-                }
-                let r = responses.message().await;
-                let r = match r {
+            if !budget.take(Instant::now()) {
+                return tally;
+            }
+            let mut sent = Instant::now();
+            let (tx, mut responses) =
+                match open_stream(&mut client, request(&session, &states, offset)).await {
+                    Ok(opened) => opened,
+                    Err(status) => {
+                        tally.record(Duration::ZERO, Err(&status));
+                        return tally;
+                    }
+                };
+            let mut i = 1;
+            loop {
+                let r = match responses.message().await {
                     Ok(Some(r)) => Ok(r),
                     Ok(None) => break,
                     Err(status) => Err(status),
@@ -356,7 +435,15 @@ async fn run_session(
                 if budget.measuring(sent) {
                     tally.record(sent.elapsed(), r.as_ref());
                 }
-                if r.is_err() {
+                if r.is_err() || !budget.take(Instant::now()) {
+                    break;
+                }
+                sent = Instant::now();
+                if tx
+                    .send(request(&session, &states, offset + i))
+                    .await
+                    .is_err()
+                {
                     break;
                 }
                 i += 1;
@@ -398,13 +485,6 @@ async fn run_session(
         }
         (Mode::Stream, Some(interval)) => {
             let (tx, rx) = mpsc::channel(1024);
-            let mut responses = match client.step_stream(ReceiverStream::new(rx)).await {
-                Ok(r) => r.into_inner(),
-                Err(status) => {
-                    tally.record(Duration::ZERO, Err(&status));
-                    return tally;
-                }
-            };
             let scheduled = Arc::new(Mutex::new(VecDeque::new()));
             let sender = {
                 let (scheduled, budget, session, states) = (
@@ -431,6 +511,15 @@ async fn run_session(
                     }
                 })
             };
+            // Requests flow before the response headers come (the sender is already running).
+            let mut responses = match client.step_stream(ReceiverStream::new(rx)).await {
+                Ok(r) => r.into_inner(),
+                Err(status) => {
+                    tally.record(Duration::ZERO, Err(&status));
+                    let _ = sender.await;
+                    return tally;
+                }
+            };
             loop {
                 let r = match responses.message().await {
                     Ok(Some(r)) => Ok(r),
@@ -453,38 +542,132 @@ async fn run_session(
     tally
 }
 
+/// CPU time (user + system, all threads) a process has used, from /proc (Linux's clock ticks
+/// are 1/100 s).
+fn cpu_time(pid: u32) -> Option<Duration> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // Fields after the command name, which is in parentheses and may hold spaces.
+    let fields: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
+    let ticks: u64 = fields.get(11)?.parse::<u64>().ok()? + fields.get(12)?.parse::<u64>().ok()?;
+    Some(Duration::from_millis(ticks * 10))
+}
+
+/// The policy to load: the one asked for, else the only one served (the local server serves
+/// hopper-bench).
+async fn choose_policy(
+    client: &mut PracClient<Channel>,
+    asked: Option<&str>,
+    local: bool,
+    addr: &str,
+) -> anyhow::Result<proto::PolicyInfo> {
+    let wanted = asked.or(local.then_some("hopper-bench"));
+    // A server answers UNAVAILABLE until its bundles are loaded: wait for them.
+    let deadline = Instant::now() + Duration::from_secs(20);
+    loop {
+        let listed = match client.list_policies(proto::ListPoliciesRequest {}).await {
+            Ok(listed) => listed.into_inner().policies,
+            Err(status) if status.code() == tonic::Code::Unavailable => Vec::new(),
+            Err(status) => bail!("ListPolicies at {addr}: {status}"),
+        };
+        let names: Vec<&str> = listed.iter().map(|p| p.name.as_str()).collect();
+        match wanted {
+            Some(name) => {
+                if let Some(p) = listed.iter().find(|p| p.name == name) {
+                    return Ok(p.clone());
+                }
+                if Instant::now() > deadline {
+                    bail!(
+                        "policy '{name}' is not served at {addr}; it serves: {}",
+                        names.join(", ")
+                    );
+                }
+            }
+            None if listed.len() == 1 => return Ok(listed[0].clone()),
+            None if !listed.is_empty() => bail!(
+                "{addr} serves {} policies; choose one with --policy: {}",
+                listed.len(),
+                names.join(", ")
+            ),
+            None if Instant::now() > deadline => bail!("{addr} serves no policy"),
+            None => {}
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+/// Writes observations as a safetensors file with an f32 `obs` [N, obs_dim].
+fn save_observations(
+    path: &std::path::Path,
+    rows: &[Vec<f32>],
+    obs_dim: usize,
+) -> anyhow::Result<()> {
+    let data: Vec<u8> = rows
+        .iter()
+        .flatten()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
+    let view = safetensors::tensor::TensorView::new(
+        safetensors::Dtype::F32,
+        vec![rows.len(), obs_dim],
+        &data,
+    )?;
+    let bytes = safetensors::serialize([("obs", view)], None)?;
+    std::fs::write(path, bytes).with_context(|| format!("writing {}", path.display()))
+}
+
 async fn run(args: Args) -> anyhow::Result<Report> {
     let (addr, local) = match &args.server {
-        Some(addr) => (addr.clone(), None),
+        Some(addr) => {
+            let addr = addr
+                .strip_prefix("http://")
+                .unwrap_or(addr)
+                .trim_end_matches('/');
+            (addr.to_string(), None)
+        }
         None => {
             let server = LocalServer::start(args.prac_bin.as_deref(), &args.server_arg).await?;
             (server.server.addr.clone(), Some(server))
         }
     };
-    let policy = args
-        .policy
-        .clone()
-        .unwrap_or_else(|| "hopper-bench".to_string());
+    let server_pid = args.server_pid.or(local.as_ref().and_then(|l| l.server.pid()));
     let mut client = connect(&addr).await?;
-    // The local server loads its bundle after it binds: wait until the policy is listed.
-    let deadline = Instant::now() + Duration::from_secs(20);
-    let info = loop {
-        let listed = client.list_policies(proto::ListPoliciesRequest {}).await;
-        if let Ok(listed) = listed
-            && let Some(p) = listed
-                .into_inner()
-                .policies
-                .into_iter()
-                .find(|p| p.name == policy)
-        {
-            break p;
-        }
-        if Instant::now() > deadline {
-            bail!("policy '{policy}' is not served at {addr}");
-        }
-        tokio::time::sleep(Duration::from_millis(20)).await;
+    let info = choose_policy(&mut client, args.policy.as_deref(), local.is_some(), &addr).await?;
+    let policy = info.name.clone();
+    let ours = prac::domains::make(&info.domain).is_some();
+    let workload = match (args.workload, &args.observations) {
+        (Some(_), Some(_)) => bail!("--observations replays a file; it takes no --workload"),
+        (Some(Workload::Sim), None) if !ours => bail!(
+            "--workload sim needs a policy of one of prac's domains (lander, hopper, walker, \
+             cheetah, ant, humanoid, pendulum); '{policy}' is for '{}'; use --workload model or \
+             --observations FILE",
+            info.domain
+        ),
+        (Some(w), None) => Some(w),
+        (None, Some(_)) => None,
+        (None, None) if ours => Some(Workload::Sim),
+        (None, None) => Some(Workload::Model),
     };
-    let states = Arc::new(observations(&args, &mut client, &policy, info.obs_dim as usize).await?);
+    if args.rate_per_session.is_some() && args.rate > 0.0 {
+        bail!("give --rate (all sessions) or --rate-per-session (each robot), not both");
+    }
+    if let Some(hz) = args.rate_per_session {
+        if !(hz.is_finite() && hz > 0.0) {
+            bail!("--rate-per-session must be a positive rate in Hz, got {hz}");
+        }
+        if workload != Some(Workload::Sim) {
+            bail!("--rate-per-session drives simulated robots: it needs --workload sim");
+        }
+    }
+    let open_loop = args.rate > 0.0 || args.rate_per_session.is_some();
+    if open_loop && workload == Some(Workload::Sim) && args.mode != Mode::Stream {
+        bail!("simulated robots run open loop over one StepStream each: use --mode stream");
+    }
+    let obs_dim = info.obs_dim as usize;
+    let states = Arc::new(match workload {
+        Some(Workload::Sim) => Vec::new(),
+        _ => observations(&args, &mut client, &policy, obs_dim).await?,
+    });
+    let saved: Option<sim::Saved> = args.save_observations.as_ref().map(|_| Arc::default());
 
     // Sessions the server refuses (e.g. over its session cap) are counted as errors, not fatal.
     let mut total = Tally::new();
@@ -523,28 +706,64 @@ async fn run(args: Args) -> anyhow::Result<Report> {
             .steps
             .map(|n| Arc::new(std::sync::atomic::AtomicI64::new(n as i64))),
     };
-    let interval =
-        (args.rate > 0.0).then(|| Duration::from_secs_f64(args.sessions as f64 / args.rate));
+    let interval = match args.rate_per_session {
+        Some(hz) => Some(Duration::from_secs_f64(1.0 / hz)),
+        None => {
+            (args.rate > 0.0).then(|| Duration::from_secs_f64(args.sessions as f64 / args.rate))
+        }
+    };
     let mut tasks = Vec::new();
     for (k, (client, id)) in sessions.iter().enumerate() {
-        tasks.push(tokio::spawn(run_session(
-            client.clone(),
-            id.clone(),
-            states.clone(),
-            k * 997,
-            Pace {
-                mode: args.mode,
-                interval,
-                phase: interval.map_or(Duration::ZERO, |i| {
-                    i.mul_f64(k as f64 / args.sessions as f64)
-                }),
-            },
-            budget.clone(),
-        )));
+        let phase = interval.map_or(Duration::ZERO, |i| {
+            i.mul_f64(k as f64 / args.sessions as f64)
+        });
+        let task = match workload {
+            Some(Workload::Sim) => {
+                let env = prac::domains::make(&info.domain).expect("checked above");
+                match interval {
+                    Some(interval) => tokio::spawn(sim::open_loop(
+                        client.clone(),
+                        id.clone(),
+                        env,
+                        (args.seed, k),
+                        (interval, phase),
+                        budget.clone(),
+                        saved.clone(),
+                    )),
+                    None => tokio::spawn(sim::closed_loop(
+                        client.clone(),
+                        id.clone(),
+                        env,
+                        (args.seed, k),
+                        args.mode,
+                        budget.clone(),
+                        saved.clone(),
+                    )),
+                }
+            }
+            _ => tokio::spawn(run_session(
+                client.clone(),
+                id.clone(),
+                states.clone(),
+                k * 997,
+                Pace {
+                    mode: args.mode,
+                    interval,
+                    phase,
+                },
+                budget.clone(),
+            )),
+        };
+        tasks.push(task);
     }
+    // The server's CPU over the measured window.
+    let cpu_at = |pid: Option<u32>| pid.and_then(cpu_time);
+    tokio::time::sleep_until(measure_from.into()).await;
+    let cpu_start = cpu_at(server_pid);
     for task in tasks {
         total.merge(&task.await?);
     }
+    let cpu_end = cpu_at(server_pid);
     let seconds = measure_from.elapsed().as_secs_f64().min(
         until
             .saturating_duration_since(measure_from)
@@ -559,12 +778,25 @@ async fn run(args: Args) -> anyhow::Result<Report> {
     if let Some(local) = local {
         local.server.stop().await;
     }
+    if let (Some(path), Some(saved)) = (&args.save_observations, &saved) {
+        let rows = saved.lock().unwrap_or_else(|p| p.into_inner());
+        save_observations(path, &rows, obs_dim)?;
+    }
     let steps = total.steps.max(1) as f64;
     let q = |p: f64| total.latency.value_at_quantile(p) as f64;
+    let robot_steps = total.late + total.on_time;
+    let open_loop_sim = workload == Some(Workload::Sim) && interval.is_some();
     Ok(Report {
         mode: args.mode,
+        workload: match workload {
+            Some(Workload::Sim) => "sim",
+            Some(Workload::Model) => "model",
+            None => "file",
+        }
+        .to_string(),
+        domain: info.domain.clone(),
         sessions: args.sessions,
-        open_loop_rate: interval.map(|_| args.rate),
+        open_loop_rate: interval.map(|i| args.sessions as f64 / i.as_secs_f64()),
         seconds,
         steps: total.steps,
         throughput: total.steps as f64 / seconds,
@@ -580,6 +812,12 @@ async fn run(args: Args) -> anyhow::Result<Report> {
         mean_forecast: total.f_t as f64 / steps,
         replans_per_step: total.replans as f64 / steps,
         mean_plan_length: total.plan_length as f64 / steps,
+        old_actions_tested_per_step: total.tested as f64 / steps,
+        late_steps: open_loop_sim.then_some(total.late),
+        late_fraction: open_loop_sim.then(|| total.late as f64 / robot_steps.max(1) as f64),
+        server_cpu_us_per_step: cpu_start
+            .zip(cpu_end)
+            .map(|(a, b)| (b - a).as_secs_f64() * 1e6 / steps),
     })
 }
 
@@ -604,8 +842,8 @@ fn main() -> std::process::ExitCode {
                 None => "closed loop".to_string(),
             };
             println!(
-                "{} sessions, {:?}, {loop_kind}: {} steps in {:.2} s",
-                r.sessions, r.mode, r.steps, r.seconds
+                "{} sessions, {:?}, {} workload ({}), {loop_kind}: {} steps in {:.2} s",
+                r.sessions, r.mode, r.workload, r.domain, r.steps, r.seconds
             );
             println!("throughput   {:.0} steps/s", r.throughput);
             let l = &r.latency_us;
@@ -614,9 +852,21 @@ fn main() -> std::process::ExitCode {
                 l.p50, l.p90, l.p99, l.p999, l.max, l.mean
             );
             println!(
-                "forecast     mean f_t {:.2}, plan length {:.2}, replans per step {:.3}",
-                r.mean_forecast, r.mean_plan_length, r.replans_per_step
+                "forecast     mean f_t {:.2}, plan length {:.2}, replans per step {:.3}, old actions tested per step {:.2}",
+                r.mean_forecast,
+                r.mean_plan_length,
+                r.replans_per_step,
+                r.old_actions_tested_per_step
             );
+            if let (Some(late), Some(fraction)) = (r.late_steps, r.late_fraction) {
+                println!(
+                    "late steps   {late} ({:.2}% of robot steps)",
+                    100.0 * fraction
+                );
+            }
+            if let Some(cpu) = r.server_cpu_us_per_step {
+                println!("server CPU   {cpu:.0} us per step (user + system, /proc)");
+            }
             if r.errors.is_empty() {
                 println!("errors       none");
             } else {

@@ -1,0 +1,409 @@
+"""A prac.v1 server in Python, written as a Python engineer would write it well: grpc.aio,
+float32 numpy, and Replan batched across sessions, the plan checked in chunks. It is the
+yardstick docs/performance.md compares `prac serve` with, not part of the client package.
+
+    python clients/python/baseline/server.py --bundles bundles --listen 127.0.0.1:50061
+
+Serves ListPolicies, OpenSession (deterministic sessions: no `sampled`, no `resume`),
+CloseSession, Step, StepStream and GetPlan. Answers equal prac serve's (actions to float32
+rounding; kept, broke_at, f_t exactly) for the same bundle, options and observations.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import pathlib
+import secrets
+from dataclasses import dataclass, field
+from typing import Any, AsyncIterator
+
+import grpc
+import grpc.aio
+import numpy as np
+from safetensors.numpy import load_file
+
+from prac_client._proto.prac.v1 import prac_pb2 as pb
+from prac_client._proto.prac.v1 import prac_pb2_grpc as pb_grpc
+
+F32 = np.float32
+LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
+DEFAULT_MAX_HORIZON = 32
+CHUNK = 8  # old actions checked per round: one batched actor and critic pass for all of them
+
+
+def _activation(name: str) -> Any:
+    return {"relu": lambda x: np.maximum(x, 0, out=x), "tanh": lambda x: np.tanh(x, out=x)}[name.lower()]
+
+
+class Mlp:
+    """Linear layers [out, in] (PyTorch layout, kept transposed for x @ W), activation between
+    them, and after the last one too when `last_activation`."""
+
+    def __init__(self, tensors: dict[str, np.ndarray], prefix: str, layers: int, activation: str, last_activation: bool):
+        self.weights = [np.ascontiguousarray(tensors[f"{prefix}.{2 * i}.weight"].T, dtype=F32) for i in range(layers)]
+        self.biases = [tensors[f"{prefix}.{2 * i}.bias"].astype(F32) for i in range(layers)]
+        self.act = _activation(activation)
+        self.last_activation = last_activation
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        n = len(self.weights)
+        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
+            x = x @ w
+            x += b
+            if i < n - 1 or self.last_activation:
+                x = self.act(x)
+        return x
+
+
+class Policy:
+    def __init__(self, path: pathlib.Path):
+        tensors = load_file(str(path))
+        with open(path, "rb") as f:
+            header_len = int.from_bytes(f.read(8), "little")
+            header = json.loads(f.read(header_len))
+        m = json.loads(header["__metadata__"]["manifest"])
+        self.manifest = m
+        self.obs_dim, self.act_dim = m["obs_dim"], m["act_dim"]
+        self.low = np.array(m["action_low"], dtype=F32)
+        self.high = np.array(m["action_high"], dtype=F32)
+        actor_layers = len(m["actor"]["hidden"])
+        self.trunk = Mlp(tensors, "actor.latent_pi", actor_layers, m["actor"]["activation"], True)
+        self.mu_w = np.ascontiguousarray(tensors["actor.mu.weight"].T, dtype=F32)
+        self.mu_b = tensors["actor.mu.bias"].astype(F32)
+        critic_layers = len(m["critic"]["hidden"]) + 1
+        self.critics = [
+            Mlp(tensors, f"critic.qf{k}", critic_layers, m["critic"]["activation"], False) for k in range(m["critic"]["n_critics"])
+        ]
+        self.mean_q = m.get("q_aggregation", "min") == "mean"
+        spec = m["model"]
+        self.model = Mlp(tensors, "model.net", len(spec["hidden"]) + 1, spec["activation"], False)
+        n = spec["normalization"]
+        self.norm = {k: np.array(v, dtype=F32) for k, v in n.items()}
+        self.value_scale = m.get("value_scale")
+
+    def act(self, s: np.ndarray) -> np.ndarray:
+        """Deterministic actions tanh(mu) in [-1, 1], one row per state."""
+        return np.tanh(self.trunk(s.copy()) @ self.mu_w + self.mu_b)
+
+    def q(self, s: np.ndarray, a: np.ndarray) -> np.ndarray:
+        x = np.concatenate([s, a], axis=1)
+        qs = [c(x.copy())[:, 0] for c in self.critics]
+        return np.mean(qs, axis=0, dtype=F32) if self.mean_q else np.minimum.reduce(qs)
+
+    def predict(self, s: np.ndarray, a: np.ndarray) -> np.ndarray:
+        n = self.norm
+        x = np.concatenate([(s - n["obs_mean"]) / n["obs_std"], (a - n["action_mean"]) / n["action_std"]], axis=1)
+        return s + (self.model(x) * n["delta_std"] + n["delta_mean"])
+
+    def unscale(self, a: np.ndarray) -> np.ndarray:
+        return self.low + 0.5 * (a + 1.0) * (self.high - self.low)
+
+
+@dataclass
+class Session:
+    policy_name: str
+    policy: Policy
+    epsilon: float
+    grow: int | None
+    fixed: int | None
+    max_horizon: int
+    # The committed plan: squashed actions [n, act], predicted observations [n, obs], decided_at.
+    actions: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), F32))
+    predicted: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), F32))
+    decided: list[int] = field(default_factory=list)
+    step: int | None = None
+    episode: int = 0
+    served: int = 0
+
+
+def replan_batch(policy: Policy, jobs: list[tuple[Session, np.ndarray, bool]]) -> list[tuple[int, int | None]]:
+    """Algorithm 2 for several sessions of one policy at once. Each job is (session, observed
+    state, fresh); returns (kept, broke_at) per job and leaves each new plan on its session."""
+    b = len(jobs)
+    od, ad = policy.obs_dim, policy.act_dim
+    state = np.stack([s for _, s, _ in jobs]).astype(F32)
+    olds = []
+    for session, _, fresh in jobs:
+        if fresh or len(session.decided) == 0:
+            olds.append((np.zeros((0, ad), F32), []))
+        else:
+            olds.append((session.actions[1:], session.decided[1:]))
+    limit = [min(len(o[1]), jobs[k][0].max_horizon) for k, o in enumerate(olds)]
+    kept = [0] * b
+    broke: list[int | None] = [None] * b
+    new_actions: list[list[np.ndarray]] = [[] for _ in range(b)]
+    new_states: list[list[np.ndarray]] = [[] for _ in range(b)]
+    new_decided: list[list[int]] = [[] for _ in range(b)]
+    pi_at_break: list[np.ndarray | None] = [None] * b
+    checking = [k for k in range(b) if limit[k] > 0]
+    # Check the old plans CHUNK actions at a time: roll the model over the chunk, then one actor
+    # and one critic pass over every state of every chunk, and keep up to the first failure.
+    while checking:
+        rows, owner, depth = [], [], []
+        starts = {k: state[k].copy() for k in checking}
+        s = np.stack([state[k] for k in checking])
+        cur = {k: i for i, k in enumerate(checking)}
+        rolled: dict[int, list[np.ndarray]] = {k: [] for k in checking}
+        for c in range(CHUNK):
+            alive = [k for k in checking if kept[k] + c < limit[k]]
+            if not alive:
+                break
+            idx = [cur[k] for k in alive]
+            a = np.stack([olds[k][0][kept[k] + c] for k in alive])
+            for k, i in zip(alive, idx):
+                rows.append(s[i].copy())
+                owner.append(k)
+                depth.append(c)
+            nxt = policy.predict(s[idx], a)
+            s[idx] = nxt
+            for k, r in zip(alive, nxt):
+                rolled[k].append(r)
+        states = np.stack(rows)
+        old_a = np.stack([olds[k][0][kept[k] + c] for k, c in zip(owner, depth)])
+        pi = policy.act(states)
+        both = policy.q(np.concatenate([states, states]), np.concatenate([pi, old_a]))
+        q_pi, q_a = both[: len(rows)], both[len(rows) :]
+        first_fail: dict[int, int] = {}
+        for r, (k, c) in enumerate(zip(owner, depth)):
+            eps = F32(jobs[k][0].epsilon)
+            if k not in first_fail and q_a[r] + eps < q_pi[r]:
+                first_fail[k] = c
+                pi_at_break[k] = pi[r]
+        still = []
+        for k in checking:
+            n_checked = len(rolled[k])
+            good = first_fail.get(k, n_checked)
+            for c in range(good):
+                new_actions[k].append(olds[k][0][kept[k] + c])
+                new_states[k].append(rolled[k][c])
+                new_decided[k].append(olds[k][1][kept[k] + c])
+            state[k] = rolled[k][good - 1] if good > 0 else starts[k]
+            kept[k] += good
+            if k in first_fail:
+                broke[k] = kept[k]
+            elif kept[k] < limit[k]:
+                still.append(k)
+        checking = still
+    # Extend each plan with the policy, all sessions in lockstep.
+    wanted = []
+    for k, (session, _, _) in enumerate(jobs):
+        w = session.grow if session.grow is not None else max((session.fixed or 0) - kept[k], 0)
+        wanted.append(min(w, session.max_horizon - kept[k]))
+    s = state.copy()
+    for m in range(max(wanted, default=0)):
+        alive = [k for k in range(b) if m < wanted[k]]
+        need = [k for k in alive if not (m == 0 and pi_at_break[k] is not None)]
+        a = np.zeros((len(alive), ad), F32)
+        if need:
+            computed = policy.act(s[need])
+            for k, row in zip(need, computed):
+                a[alive.index(k)] = row
+        for k in alive:
+            if m == 0 and pi_at_break[k] is not None:
+                a[alive.index(k)] = pi_at_break[k]
+        nxt = policy.predict(s[alive], a)
+        s[alive] = nxt
+        for i, k in enumerate(alive):
+            new_actions[k].append(a[i])
+            new_states[k].append(nxt[i])
+            new_decided[k].append(-1)  # decided now: the step, filled in below
+    out = []
+    for k, (session, _, fresh) in enumerate(jobs):
+        t = 0 if fresh or session.step is None else session.step + 1
+        if fresh and session.step is not None:
+            session.episode += 1
+        session.step = t
+        session.actions = np.stack(new_actions[k]).astype(F32) if new_actions[k] else np.zeros((0, ad), F32)
+        session.predicted = np.stack(new_states[k]).astype(F32) if new_states[k] else np.zeros((0, od), F32)
+        session.decided = [t if d < 0 else d for d in new_decided[k]]
+        session.served += 1
+        out.append((kept[k], broke[k]))
+    return out
+
+
+def response(session: Session, kept: int, broke_at: int | None) -> pb.StepResponse:
+    p = session.policy
+    actions = p.unscale(session.actions)
+    forecast = [
+        pb.PlannedAction(action=actions[j].tolist(), predicted_observation=session.predicted[j].tolist(), decided_at=session.decided[j])
+        for j in range(len(session.decided))
+    ]
+    r = pb.StepResponse(
+        action=actions[0].tolist(),
+        forecast=forecast,
+        kept=kept,
+        f_t=session.step + 1 - session.decided[0],  # type: ignore[operator]
+        step=session.step,
+        episode=session.episode,
+    )
+    if broke_at is not None:
+        r.broke_at = broke_at
+    return r
+
+
+class Batcher:
+    """Steps wait here; one task replans everything waiting, policy by policy, in one batch."""
+
+    def __init__(self) -> None:
+        self.queue: asyncio.Queue[tuple[Session, np.ndarray, bool, asyncio.Future[pb.StepResponse]]] = asyncio.Queue()
+
+    async def step(self, session: Session, observation: np.ndarray, new_episode: bool) -> pb.StepResponse:
+        done: asyncio.Future[pb.StepResponse] = asyncio.get_running_loop().create_future()
+        await self.queue.put((session, observation, new_episode, done))
+        return await done
+
+    async def run(self) -> None:
+        while True:
+            batch = [await self.queue.get()]
+            while not self.queue.empty() and len(batch) < 256:
+                batch.append(self.queue.get_nowait())
+            groups: dict[int, list[Any]] = {}
+            seen: set[int] = set()
+            later = []
+            for item in batch:
+                if id(item[0]) in seen:
+                    later.append(item)  # a session's steps stay in order
+                    continue
+                seen.add(id(item[0]))
+                groups.setdefault(id(item[0].policy), []).append(item)
+            for items in groups.values():
+                jobs = [(sess, obs, new_episode or sess.step is None) for sess, obs, new_episode, _ in items]
+                try:
+                    outcomes = replan_batch(items[0][0].policy, jobs)
+                except Exception as e:  # a bug must not stop the batcher
+                    for *_, done in items:
+                        if not done.done():
+                            done.set_exception(e)
+                    continue
+                for (sess, _, _, done), (kept, broke_at) in zip(items, outcomes):
+                    if not done.done():
+                        done.set_result(response(sess, kept, broke_at))
+            for item in later:
+                self.queue.put_nowait(item)
+
+
+class Service(pb_grpc.PracServicer):  # type: ignore[misc]
+    def __init__(self, policies: dict[str, Policy]) -> None:
+        self.policies = policies
+        self.sessions: dict[str, Session] = {}
+        self.batcher = Batcher()
+
+    def info(self, name: str) -> pb.PolicyInfo:
+        p = self.policies[name]
+        info = pb.PolicyInfo(
+            name=name,
+            domain=p.manifest["domain"],
+            obs_dim=p.obs_dim,
+            act_dim=p.act_dim,
+            action_low=p.low.tolist(),
+            action_high=p.high.tolist(),
+            gamma=p.manifest["gamma"],
+        )
+        if p.value_scale:
+            info.value_scale.v_pi = p.value_scale["v_pi"]
+            info.value_scale.v_rand = p.value_scale["v_rand"]
+        return info
+
+    async def ListPolicies(self, request: Any, context: Any) -> pb.ListPoliciesResponse:
+        return pb.ListPoliciesResponse(policies=[self.info(name) for name in self.policies])
+
+    async def OpenSession(self, request: Any, context: Any) -> pb.OpenSessionResponse:
+        p = self.policies.get(request.policy)
+        if p is None:
+            await context.abort(grpc.StatusCode.NOT_FOUND, f"unknown policy '{request.policy}'")
+        o = request.options
+        if o.sampled or request.HasField("resume"):
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "the baseline serves deterministic sessions without resume")
+        which = o.WhichOneof("tolerance")
+        eps = 0.0
+        if which == "epsilon":
+            eps = o.epsilon
+        elif which == "epsilon_coef":
+            vs = p.value_scale
+            eps = o.epsilon_coef * (vs["v_pi"] - vs["v_rand"])
+        growth = o.WhichOneof("growth")
+        grow = o.grow if growth == "grow" else (None if growth == "fixed" else 2)
+        fixed = o.fixed if growth == "fixed" else None
+        horizon = o.max_horizon or (max(fixed, DEFAULT_MAX_HORIZON) if fixed else DEFAULT_MAX_HORIZON)
+        session = Session(request.policy, p, float(F32(eps)), grow, fixed, horizon)
+        sid = secrets.token_hex(16)
+        self.sessions[sid] = session
+        resolved = pb.ResolvedOptions(
+            epsilon=session.epsilon,
+            growth_mode="fixed" if fixed else "grow",
+            growth=fixed or grow or 2,
+            max_horizon=horizon,
+        )
+        return pb.OpenSessionResponse(session_id=sid, policy=self.info(request.policy), options=resolved)
+
+    async def CloseSession(self, request: Any, context: Any) -> pb.CloseSessionResponse:
+        session = self.sessions.pop(request.session_id, None)
+        if session is None:
+            await context.abort(grpc.StatusCode.NOT_FOUND, f"unknown session '{request.session_id}'")
+        return pb.CloseSessionResponse(steps=session.served)
+
+    async def _step(self, request: Any, context: Any) -> pb.StepResponse:
+        session = self.sessions.get(request.session_id)
+        if session is None:
+            await context.abort(grpc.StatusCode.NOT_FOUND, f"unknown session '{request.session_id}'")
+        obs = np.asarray(request.observation, dtype=F32)
+        if obs.shape != (session.policy.obs_dim,) or not np.isfinite(obs).all():
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "bad observation")
+        return await self.batcher.step(session, obs, request.new_episode)
+
+    async def Step(self, request: Any, context: Any) -> pb.StepResponse:
+        return await self._step(request, context)
+
+    async def StepStream(self, requests: AsyncIterator[Any], context: Any) -> AsyncIterator[pb.StepResponse]:
+        async for request in requests:
+            yield await self._step(request, context)
+
+    async def GetPlan(self, request: Any, context: Any) -> pb.Plan:
+        session = self.sessions.get(request.session_id)
+        if session is None:
+            await context.abort(grpc.StatusCode.NOT_FOUND, f"unknown session '{request.session_id}'")
+        actions = session.policy.unscale(session.actions)
+        return pb.Plan(
+            session_id=request.session_id,
+            episode=session.episode,
+            start_step=session.step or 0,
+            actions=[
+                pb.PlannedAction(action=actions[j].tolist(), predicted_observation=session.predicted[j].tolist(), decided_at=d)
+                for j, d in enumerate(session.decided)
+            ],
+        )
+
+
+async def serve(bundles: pathlib.Path, listen: str) -> None:
+    policies = {}
+    for path in sorted(bundles.glob("*.safetensors")):
+        try:
+            policies[path.stem] = Policy(path)
+        except (KeyError, TypeError) as e:
+            print(f"skipping {path}: {e}", flush=True)
+    service = Service(policies)
+    server = grpc.aio.server(options=[("grpc.so_reuseport", 0)])
+    pb_grpc.add_PracServicer_to_server(service, server)
+    port = server.add_insecure_port(listen)
+    await server.start()
+    host = listen.rsplit(":", 1)[0]
+    print(f"listening on {host}:{port}", flush=True)
+    batcher = asyncio.create_task(service.batcher.run())
+    try:
+        await server.wait_for_termination()
+    finally:
+        batcher.cancel()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--bundles", type=pathlib.Path, required=True)
+    parser.add_argument("--listen", default="127.0.0.1:50061")
+    args = parser.parse_args()
+    asyncio.run(serve(args.bundles, args.listen))
+
+
+if __name__ == "__main__":
+    main()

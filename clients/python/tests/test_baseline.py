@@ -1,0 +1,48 @@
+"""The Python baseline server (clients/python/baseline) answers as prac serve does: the same
+actions (to float32 rounding) and the same kept, broke_at and f_t over a few hundred steps, so the
+performance comparison in docs/performance.md compares like with like."""
+
+from __future__ import annotations
+
+import pathlib
+import subprocess
+import sys
+
+import numpy as np
+
+from prac_client import Client
+
+from conftest import REPO, Server
+
+
+def test_the_baseline_answers_as_prac_serve_does(bundles: pathlib.Path, server: Server) -> None:
+    baseline = subprocess.Popen(
+        [sys.executable, str(REPO / "clients" / "python" / "baseline" / "server.py"), "--bundles", str(bundles), "--listen", "127.0.0.1:0"],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert baseline.stdout is not None
+        line = baseline.stdout.readline()
+        assert line.startswith("listening on "), line
+        address = line.removeprefix("listening on ").strip()
+        rng = np.random.default_rng(5)
+        breaks = 0
+        with Client(server.address, timeout=10) as ours, Client(address, timeout=10) as theirs:
+            for epsilon, growth in ((1e-4, "grow 2"), (1e-3, "fixed 6"), (0.0, "grow 1")):
+                a = ours.session("pendulum", epsilon=epsilon, growth=growth, max_horizon=12)
+                b = theirs.session("pendulum", epsilon=epsilon, growth=growth, max_horizon=12)
+                obs = rng.uniform(-1, 1, 3)
+                for t in range(120):
+                    ra, rb = a.step(obs, new_episode=t % 40 == 0), b.step(obs, new_episode=t % 40 == 0)
+                    np.testing.assert_allclose(ra.action, rb.action, atol=1e-3, err_msg=f"{growth} step {t}")
+                    np.testing.assert_allclose(ra.forecast_actions, rb.forecast_actions, atol=1e-3)
+                    assert (ra.kept, ra.broke_at, ra.f_t, ra.step, ra.episode) == (rb.kept, rb.broke_at, rb.f_t, rb.step, rb.episode), t
+                    breaks += ra.broke_at is not None
+                    # Near the plan's predictions, with noise: some plans hold, some break.
+                    obs = np.clip(ra.forecast_observations[0] + rng.uniform(-0.3, 0.3, 3), -3, 3)
+                assert a.close() == b.close() == 120
+        assert breaks > 0
+    finally:
+        baseline.terminate()
+        baseline.wait(10)
