@@ -75,6 +75,28 @@ fn a_manifest_declaring_a_billion_critics_is_an_error_not_an_abort() {
 }
 
 #[test]
+fn serve_on_a_missing_bundle_directory_fails_before_its_ready_line() {
+    let out = prac(&[
+        "serve",
+        "--listen",
+        "127.0.0.1:0",
+        "--bundles",
+        "/nonexistent/prac-bundles",
+    ]);
+    assert_eq!(out.status.code(), Some(1), "{out:?}");
+    assert!(
+        out.stdout.is_empty(),
+        "{}",
+        String::from_utf8_lossy(&out.stdout)
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("cannot read bundle directory /nonexistent/prac-bundles"),
+        "{err}"
+    );
+}
+
+#[test]
 fn inspect_names_the_file_and_field_of_a_bad_bundle() {
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("bad.safetensors");

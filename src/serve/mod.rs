@@ -156,6 +156,10 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
             "the open-file limit (ulimit -n) allows fewer connections than asked; raise it to serve more"
         );
     }
+    // A directory that cannot be read stops the server before its ready line: a supervisor
+    // waiting for `listening on` must not see it from a server that is about to exit.
+    std::fs::read_dir(&config.bundles)
+        .with_context(|| format!("cannot read bundle directory {}", config.bundles.display()))?;
     let listener = TcpListener::bind(config.listen)
         .await
         .with_context(|| format!("cannot listen on {}", config.listen))?;

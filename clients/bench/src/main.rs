@@ -629,7 +629,9 @@ async fn run(args: Args) -> anyhow::Result<Report> {
             (server.server.addr.clone(), Some(server))
         }
     };
-    let server_pid = args.server_pid.or(local.as_ref().and_then(|l| l.server.pid()));
+    let server_pid = args
+        .server_pid
+        .or(local.as_ref().and_then(|l| l.server.pid()));
     let mut client = connect(&addr).await?;
     let info = choose_policy(&mut client, args.policy.as_deref(), local.is_some(), &addr).await?;
     let policy = info.name.clone();

@@ -5,6 +5,7 @@ step lost or doubled, sync and asyncio alike."""
 from __future__ import annotations
 
 import asyncio
+import os
 import pathlib
 import shutil
 import socket
@@ -259,6 +260,7 @@ def holder(replicas: list[Server], session_id: str) -> int:
 @pytest.mark.parametrize("flavour", ["sync", "aio"])
 def test_a_replica_killed_behind_nginx_loses_no_step(flavour: str, tmp_path: pathlib.Path, bundles: pathlib.Path, servers: list[Server]) -> None:
     if nginx_binary() is None:
+        assert "PRAC_REQUIRE_NGINX" not in os.environ, "PRAC_REQUIRE_NGINX is set but nginx is not installed"
         pytest.skip("nginx is not installed, so the replica test was skipped; `apt-get install nginx` runs it")
     replicas = [Server(bundles, log="a.log"), Server(bundles, log="b.log")]
     servers.extend(replicas)
