@@ -1,4 +1,4 @@
-//! The shipped bundles do their tasks (issue 9's criteria), on seeds their training runs never
+//! The shipped bundles do their tasks (the criteria of docs/results.md), on seeds their training runs never
 //! evaluated on. A walker's forward distance comes from `Env::forward_position`.
 
 use std::path::Path;
@@ -57,7 +57,7 @@ fn the_shipped_cheetah_bundle_runs_forward() {
     }
 }
 
-/// Issue 9's walker criterion: moving forward without falling in at least 80% of episodes.
+/// The walker criterion: moving forward without falling in at least 80% of episodes.
 fn walks_forward_without_falling(domain: &str) {
     let (_, episodes) = play(domain, 5);
     let upright = count_upright(&episodes);

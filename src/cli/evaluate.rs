@@ -1,5 +1,5 @@
 //! `prac evaluate FILE`: a bundle's deterministic policy against uniformly random actions on its
-//! domain, the figures issue 9's task criteria are judged on.
+//! domain, the figures the shipped bundles' task criteria (docs/results.md) are judged on.
 
 use std::path::Path;
 use std::sync::Arc;

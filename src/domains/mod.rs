@@ -1,4 +1,4 @@
-//! Environments (issue 3): the task interface shared by training and the simulator client.
+//! Environments: the task interface shared by training and the simulator client.
 //! Domains: `pendulum` (gymnasium's Pendulum-v1, no physics engine), `lander`
 //! (LunarLanderContinuous on rapier2d), the planar walkers `hopper`, `walker` and `cheetah`
 //! (rapier2d) and the 3D walkers `ant` and `humanoid` (rapier3d multibodies).

@@ -155,7 +155,7 @@ pub struct ServeConfig {
     pub connections: Limits,
 }
 
-/// The repository's bundle directory, which the training issues fill.
+/// The repository's bundle directory, which holds the shipped bundles.
 pub fn default_bundle_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("bundles")
 }
