@@ -71,7 +71,9 @@ enum Command {
         /// A bundle whose PrAC plan is drawn (predicted states as dots).
         #[arg(long)]
         policy: Option<PathBuf>,
-        #[arg(long, default_value_t = 0.01)]
+        /// eps coefficient of the drawn plan's session (eps = C x (V_pi - V_rand)); needs
+        /// --policy [default: 0, as prac-sim's].
+        #[arg(long, requires = "policy", default_value_t = 0.0)]
         epsilon_coef: f64,
         #[arg(long, default_value_t = 800)]
         width: u32,

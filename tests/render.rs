@@ -104,3 +104,33 @@ fn traces_follow_the_predicted_observations() {
         "the lander starts high: {start:?}"
     );
 }
+
+#[test]
+fn a_picture_into_a_missing_folder_is_a_plain_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("missing/pendulum.png");
+    let run = Command::new(env!("CARGO_BIN_EXE_prac"))
+        .args(["render", "pendulum", "--seed", "1", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(!run.status.success());
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert!(
+        err.contains("the folder") && err.contains("does not exist"),
+        "{err}"
+    );
+    assert!(!err.contains("IoError"), "{err}");
+}
+
+#[test]
+fn a_tolerance_without_a_policy_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = Command::new(env!("CARGO_BIN_EXE_prac"))
+        .args(["render", "pendulum", "--epsilon-coef", "0.1", "--out"])
+        .arg(dir.path().join("p.png"))
+        .output()
+        .unwrap();
+    assert!(!run.status.success());
+    assert!(String::from_utf8_lossy(&run.stderr).contains("--policy"));
+}

@@ -136,6 +136,7 @@ pub fn line_panels(
     (width, height): (u32, u32),
 ) -> anyhow::Result<()> {
     register_font();
+    super::check_folder(path)?;
     let root = BitMapBackend::new(path, (width, height)).into_drawing_area();
     root.fill(&WHITE).map_err(err)?;
     let areas = root.split_evenly((1, panels.len().max(1)));

@@ -29,6 +29,19 @@ fn err<E: std::fmt::Debug>(e: E) -> anyhow::Error {
     anyhow::anyhow!("drawing failed: {e:?}")
 }
 
+/// Refuses a picture path whose folder does not exist, before drawing (the PNG encoder's own
+/// error is a nested debug dump).
+pub(crate) fn check_folder(path: &Path) -> anyhow::Result<()> {
+    match path.parent() {
+        Some(dir) if !dir.as_os_str().is_empty() && !dir.is_dir() => anyhow::bail!(
+            "cannot write {}: the folder {} does not exist",
+            path.display(),
+            dir.display()
+        ),
+        _ => Ok(()),
+    }
+}
+
 const SKY: RGBColor = RGBColor(250, 250, 252);
 const BODY: RGBColor = RGBColor(80, 90, 160);
 const GROUND: RGBColor = RGBColor(90, 90, 90);
@@ -44,6 +57,7 @@ pub fn render_scene(
     path: &Path,
     (width, height): (u32, u32),
 ) -> anyhow::Result<()> {
+    check_folder(path)?;
     register_font();
     let root = BitMapBackend::new(path, (width, height)).into_drawing_area();
     root.fill(&SKY).map_err(err)?;

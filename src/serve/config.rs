@@ -23,8 +23,9 @@ pub struct ServeArgs {
     /// TOML file with any of the keys below (snake_case, e.g. max_sessions = 64).
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Address to listen on [default: 127.0.0.1:50051]; port 0 picks a free port.
-    #[arg(long)]
+    /// Address to listen on, e.g. 127.0.0.1:50051, [::1]:50051 or localhost:50051
+    /// [default: 127.0.0.1:50051]; port 0 picks a free port.
+    #[arg(long, value_parser = socket_address)]
     pub listen: Option<SocketAddr>,
     /// Directory of NAME.safetensors bundles [default: bundles/ in the repository].
     #[arg(long)]
@@ -78,7 +79,7 @@ pub struct ServeArgs {
     pub tls_key: Option<PathBuf>,
     /// Serve Prometheus metrics over HTTP at ADDR/metrics, e.g. 127.0.0.1:9090; port 0 picks a
     /// free port (printed as `metrics on ADDR`) [default: off].
-    #[arg(long)]
+    #[arg(long, value_parser = socket_address)]
     pub metrics_listen: Option<SocketAddr>,
     /// Most client connections open at once; more are closed when accepted (lowered to fit the
     /// open-file limit) [default: 1024].
@@ -191,6 +192,28 @@ impl Default for ServeConfig {
             },
         }
     }
+}
+
+/// An address to listen on: IP:PORT, [IPv6]:PORT, or HOST:PORT resolved now (its first address).
+fn socket_address(text: &str) -> Result<SocketAddr, String> {
+    use std::net::ToSocketAddrs;
+    if let Ok(addr) = text.parse() {
+        return Ok(addr);
+    }
+    let Some((_, port)) = text.rsplit_once(':') else {
+        return Err(format!(
+            "{text:?} has no port; expected HOST:PORT such as 127.0.0.1:50051 or localhost:50051"
+        ));
+    };
+    if port.parse::<u16>().is_err() {
+        return Err(format!(
+            "{text:?}: the port {port:?} is not a number from 0 to 65535"
+        ));
+    }
+    text.to_socket_addrs()
+        .map_err(|e| format!("cannot resolve {text:?}: {e}"))?
+        .next()
+        .ok_or_else(|| format!("{text:?} resolves to no address"))
 }
 
 /// A duration where 0 means "never".
@@ -344,6 +367,26 @@ impl ServeConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn listen_addresses_may_name_a_host() {
+        assert_eq!(
+            socket_address("127.0.0.1:50051").unwrap(),
+            "127.0.0.1:50051".parse::<SocketAddr>().unwrap()
+        );
+        assert!(
+            socket_address("localhost:50072")
+                .unwrap()
+                .ip()
+                .is_loopback()
+        );
+        assert!(socket_address("localhost").unwrap_err().contains("no port"));
+        assert!(
+            socket_address("localhost:http")
+                .unwrap_err()
+                .contains("not a number")
+        );
+    }
 
     #[test]
     fn flags_override_the_file_which_overrides_defaults() {

@@ -21,7 +21,7 @@ def test_record_writes_transitions_from_a_served_policy(server: Server, tmp_path
         capture_output=True, text=True, check=True,
     )
     summary = json.loads(done.stdout)
-    assert summary["transitions"] == 400
+    assert (summary["transitions"], summary["episodes"], summary["seed"]) == (400, 2, 0)
     data = load_file(str(out))
     assert data["obs"].shape == (400, 3) and data["next_obs"].shape == (400, 3)
     assert data["action"].shape == (400, 1) and data["reward"].shape == (400,)

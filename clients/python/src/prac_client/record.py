@@ -89,7 +89,10 @@ def main(argv: list[str] | None = None) -> int:
         source_name = f"sb3:{args.sb3}"
     metadata = {"env": args.env, "episodes": str(args.episodes), "seed": str(args.seed), "policy": source_name}
     save_file(data, args.out, metadata=metadata)
-    print(json.dumps({"out": args.out, "transitions": int(data["obs"].shape[0]), **metadata}))
+    # safetensors metadata holds strings; the printed summary keeps numbers as numbers.
+    summary = {"out": args.out, "transitions": int(data["obs"].shape[0]), "env": args.env}
+    summary.update({"episodes": args.episodes, "seed": args.seed, "policy": source_name})
+    print(json.dumps(summary))
     return 0
 
 
