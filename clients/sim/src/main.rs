@@ -13,15 +13,26 @@ use clap::{Parser, Subcommand};
 
 use play::Tol;
 
+/// A failure of a command against its own local server, with what that server logged.
+fn with_server_log(
+    e: anyhow::Error,
+    local: Option<&prac::serve::local::LocalServer>,
+) -> anyhow::Error {
+    match local.map(prac::serve::local::LocalServer::recent_log) {
+        Some(log) if !log.is_empty() => anyhow::anyhow!("{e:#}\nthe local server logged:\n{log}"),
+        _ => e,
+    }
+}
+
 #[derive(Parser)]
 #[command(version, about)]
 struct Cli {
     /// A running server (host:port); without it a local `prac serve` runs for the command.
     #[arg(long, global = true)]
     server: Option<String>,
-    /// Bundles for the local server.
-    #[arg(long, global = true, default_value = "bundles")]
-    bundles: PathBuf,
+    /// Bundles for the local server [default: the repository's bundles/, as prac serve's].
+    #[arg(long, global = true)]
+    bundles: Option<PathBuf>,
     /// The `prac` binary for the local server [default: beside prac-sim].
     #[arg(long, global = true)]
     prac_bin: Option<PathBuf>,
@@ -129,7 +140,11 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
         Some(_) => None,
         None => {
             let bin = prac::serve::local::prac_binary(cli.prac_bin.as_deref())?;
-            Some(prac::serve::local::LocalServer::start(&bin, &cli.bundles, &[]).await?)
+            let bundles = cli
+                .bundles
+                .clone()
+                .unwrap_or_else(prac::serve::config::default_bundle_dir);
+            Some(prac::serve::local::LocalServer::start(&bin, &bundles, &[]).await?)
         }
     };
     let addr = cli
@@ -149,7 +164,10 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
             render_step,
             json,
         } => {
-            let info = play::policy_info(&mut client, policy).await?;
+            anyhow::ensure!(*episodes >= 1, "--episodes must be >= 1");
+            let info = play::policy_info(&mut client, policy)
+                .await
+                .map_err(|e| with_server_log(e, local.as_ref()))?;
             let tol = match (epsilon, epsilon_coef) {
                 (Some(e), _) => Tol::Absolute(*e),
                 (None, Some(c)) => Tol::Coef(*c),
@@ -161,6 +179,13 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
                 let snap_at = (k == 0 && render.is_some()).then_some(*render_step);
                 let (result, snapshot) =
                     play::play_episode(&mut client, &info, tol, seed + k, snap_at).await?;
+                if k == 0 && render.is_some() && snapshot.is_none() {
+                    anyhow::bail!(
+                        "episode 0 ended after {} steps, before --render-step {render_step}, so \
+                         nothing was drawn; give a smaller --render-step",
+                        result.steps
+                    );
+                }
                 if let (Some(out), Some(snap)) = (render, snapshot) {
                     play::render(
                         &snap,
@@ -220,7 +245,9 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
                 "--coefs must be >= 0"
             );
             anyhow::ensure!(*episodes >= 2, "--episodes must be >= 2");
-            let info = play::policy_info(&mut client, policy).await?;
+            let info = play::policy_info(&mut client, policy)
+                .await
+                .map_err(|e| with_server_log(e, local.as_ref()))?;
             let result = sweep::run(&client, &info, coefs, *episodes, *seed, !cli.quiet).await?;
             sweep::write(&result, out)?;
             print!("{}", std::fs::read_to_string(out.join("sweep.md"))?);

@@ -268,3 +268,43 @@ fn play_reports_how_far_the_shipped_cheetah_runs() {
     let distance = e["distance"].as_f64().unwrap();
     assert!(distance > 30.0, "{e}");
 }
+
+#[test]
+fn play_says_what_went_wrong() {
+    // A render step the episode never reaches: an error, not a silent success.
+    let dir = tempfile::tempdir().unwrap();
+    let out = sim(&[
+        "play",
+        "--policy",
+        "pendulum",
+        "--episodes",
+        "1",
+        "--render-step",
+        "100000",
+        "--render",
+        dir.path().join("p.png").to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("before --render-step 100000"), "{err}");
+
+    let out = sim(&["play", "--policy", "pendulum", "--episodes", "0"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--episodes must be >= 1"));
+
+    // The local server's own words come through: a folder of bad bundles.
+    std::fs::write(dir.path().join("broken.safetensors"), b"not a bundle").unwrap();
+    let out = sim_on(
+        dir.path(),
+        &["play", "--policy", "broken", "--episodes", "1"],
+    );
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("the local server logged"), "{err}");
+    assert!(err.contains("broken.safetensors"), "{err}");
+    // And a missing folder.
+    let out = sim_on(&dir.path().join("missing"), &["play", "--policy", "p"]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("cannot read bundle directory"), "{err}");
+}
