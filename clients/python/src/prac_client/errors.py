@@ -73,6 +73,8 @@ def from_rpc_error(error: grpc.RpcError, rpc: str) -> PracError:
     details = error.details() if hasattr(error, "details") else None
     message = details or str(error)
     opening = rpc == "OpenSession"
+    # The server names its RPC; a Python user opens sessions with client.session(...).
+    message = message.replace("with OpenSession", "with client.session(...)")
     kind: type[PracError]
     if code == grpc.StatusCode.NOT_FOUND:
         kind = PolicyNotFound if opening else SessionNotFound
