@@ -62,17 +62,14 @@ fn tick_label(v: &f64) -> String {
         m if m >= 1e3 => (v / 1e3, "k"),
         _ => (*v, ""),
     };
-    // Small fractions (eps coefficients) need more places than the rest.
-    let places = if scaled.abs() >= 1.0 || scaled == 0.0 {
-        3
-    } else {
-        6
-    };
+    // Six places, trimmed: enough for small fractions (eps coefficients) and for the ticks of a
+    // narrow axis around a larger value (1.0002), while round ticks stay short.
+    let places = 6;
     let text = format!("{scaled:.places$}");
-    format!(
-        "{}{suffix}",
-        text.trim_end_matches('0').trim_end_matches('.')
-    )
+    let trimmed = text.trim_end_matches('0').trim_end_matches('.');
+    // A tick a rounding error below zero prints as "-0".
+    let trimmed = if trimmed == "-0" { "0" } else { trimmed };
+    format!("{trimmed}{suffix}")
 }
 
 /// Where the legend covers the least of the lines: the candidate spots are the corners and
@@ -228,6 +225,9 @@ mod tests {
         assert_eq!(tick_label(&0.0005), "0.0005");
         assert_eq!(tick_label(&12.5), "12.5");
         assert_eq!(tick_label(&0.9999999), "1");
+        assert_eq!(tick_label(&-1e-17), "0");
+        assert_eq!(tick_label(&1.0002), "1.0002");
+        assert_eq!(tick_label(&0.30000000000000004), "0.3");
     }
 
     /// A line through the given (x, y) points, with no band.
