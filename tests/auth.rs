@@ -125,14 +125,7 @@ fn a_bad_token_file_stops_the_server() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn tls_serves_clients_that_trust_the_certificate() {
     let bundles = bundle_dir();
-    let certified = rcgen::generate_simple_self_signed(vec!["localhost".to_string()]).unwrap();
-    let (cert_pem, key_pem) = (certified.cert.pem(), certified.signing_key.serialize_pem());
-    let (cert, key) = (
-        bundles.path().join("cert.pem"),
-        bundles.path().join("key.pem"),
-    );
-    std::fs::write(&cert, &cert_pem).unwrap();
-    std::fs::write(&key, &key_pem).unwrap();
+    let (cert_pem, cert, key) = common::tls_files(bundles.path());
     let server = Server::start(
         bundles.path(),
         &[
@@ -142,17 +135,7 @@ async fn tls_serves_clients_that_trust_the_certificate() {
             key.to_str().unwrap(),
         ],
     );
-    let port = server.addr.rsplit(':').next().unwrap().to_string();
-    let tls = tonic::transport::ClientTlsConfig::new()
-        .ca_certificate(tonic::transport::Certificate::from_pem(cert_pem))
-        .domain_name("localhost");
-    let channel = tonic::transport::Channel::from_shared(format!("https://localhost:{port}"))
-        .unwrap()
-        .tls_config(tls)
-        .unwrap()
-        .connect()
-        .await
-        .unwrap();
+    let channel = server.tls_channel(&cert_pem).await;
     let mut client = proto::prac_client::PracClient::new(channel);
     let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
     loop {
@@ -165,7 +148,7 @@ async fn tls_serves_clients_that_trust_the_certificate() {
         }
     }
     // A plaintext client gets no answer from the TLS port.
-    let plain = tonic::transport::Channel::from_shared(format!("http://127.0.0.1:{port}"))
+    let plain = tonic::transport::Channel::from_shared(format!("http://{}", server.addr))
         .unwrap()
         .connect()
         .await;

@@ -12,6 +12,7 @@ use std::time::{Duration, Instant};
 use bytes::Bytes;
 use common::{
     Server, bundle_dir, grpc_frame, grpc_request, h2_connect, h2_unary, open_default_session,
+    tls_files,
 };
 use prac::proto;
 
@@ -180,14 +181,6 @@ async fn a_stream_whose_client_never_reads_stalls_alone() {
     assert!(!connection.is_finished(), "the connection was closed");
 }
 
-fn tls_files(dir: &std::path::Path) -> (String, std::path::PathBuf, std::path::PathBuf) {
-    let certified = rcgen::generate_simple_self_signed(vec!["localhost".to_string()]).unwrap();
-    let (cert, key) = (dir.join("cert.pem"), dir.join("key.pem"));
-    std::fs::write(&cert, certified.cert.pem()).unwrap();
-    std::fs::write(&key, certified.signing_key.serialize_pem()).unwrap();
-    (certified.cert.pem(), cert, key)
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_tls_port_closes_plaintext_and_slow_handshakes() {
     let bundles = bundle_dir();
@@ -221,17 +214,7 @@ async fn the_tls_port_closes_plaintext_and_slow_handshakes() {
         assert!(closed_within(s, Duration::from_secs(5)));
     }
     // Real TLS clients are served throughout.
-    let port = server.addr.rsplit(':').next().unwrap().to_string();
-    let tls = tonic::transport::ClientTlsConfig::new()
-        .ca_certificate(tonic::transport::Certificate::from_pem(cert_pem))
-        .domain_name("localhost");
-    let channel = tonic::transport::Channel::from_shared(format!("https://localhost:{port}"))
-        .unwrap()
-        .tls_config(tls)
-        .unwrap()
-        .connect()
-        .await
-        .unwrap();
+    let channel = server.tls_channel(&cert_pem).await;
     let mut health = tonic_health::pb::health_client::HealthClient::new(channel);
     health
         .check(tonic_health::pb::HealthCheckRequest::default())

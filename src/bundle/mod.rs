@@ -29,6 +29,16 @@ pub struct BundleError {
     pub reason: String,
 }
 
+impl BundleError {
+    fn at(file: &Path, field: &str, reason: String) -> BundleError {
+        BundleError {
+            file: file.to_path_buf(),
+            field: field.to_string(),
+            reason,
+        }
+    }
+}
+
 /// Names of the tensors of a network that SB3 builds as `nn.Sequential(Linear, act, Linear, ...)`:
 /// the i-th linear layer sits at index 2i.
 fn sequential_layer(prefix: &str, i: usize) -> (String, String) {
@@ -58,11 +68,7 @@ pub const MAX_HEADER_BYTES: u64 = 16 << 20;
 /// header (manifest and tensor index) is read and checked against the file's size before the
 /// tensors are, so a huge or sparse file costs a few KB of reading, not its size.
 pub fn load(path: &Path) -> Result<Policy, BundleError> {
-    let err = |field: &str, reason: String| BundleError {
-        file: path.to_path_buf(),
-        field: field.to_string(),
-        reason,
-    };
+    let err = |field: &str, reason: String| BundleError::at(path, field, reason);
     let meta = std::fs::metadata(path).map_err(|e| err("file", format!("cannot read: {e}")))?;
     if !meta.is_file() {
         return Err(err(
@@ -91,11 +97,7 @@ pub fn from_reader<R: std::io::Read + std::io::Seek>(
     size: u64,
     path: &Path,
 ) -> Result<Policy, BundleError> {
-    let err = |reason: String| BundleError {
-        file: path.to_path_buf(),
-        field: "file".into(),
-        reason,
-    };
+    let err = |reason: String| BundleError::at(path, "file", reason);
     check_header(&mut reader, size, path)?;
     let mut bytes = Vec::with_capacity(size as usize);
     reader
@@ -143,11 +145,7 @@ fn check_header<R: std::io::Read + std::io::Seek>(
     size: u64,
     path: &Path,
 ) -> Result<(), BundleError> {
-    let err = |field: &str, reason: String| BundleError {
-        file: path.to_path_buf(),
-        field: field.to_string(),
-        reason,
-    };
+    let err = |field: &str, reason: String| BundleError::at(path, field, reason);
     let header_err = |reason: String| err("safetensors header", reason);
     let mut len = [0u8; 8];
     file.read_exact(&mut len)
@@ -199,19 +197,15 @@ fn check_header<R: std::io::Read + std::io::Seek>(
 }
 
 fn missing_manifest(path: &Path) -> BundleError {
-    BundleError {
-        file: path.to_path_buf(),
-        field: "__metadata__.manifest".into(),
-        reason: "missing: a prac bundle keeps its JSON manifest there".into(),
-    }
+    BundleError::at(
+        path,
+        "__metadata__.manifest",
+        "missing: a prac bundle keeps its JSON manifest there".into(),
+    )
 }
 
 fn parse_manifest(json: &str, path: &Path) -> Result<Manifest, BundleError> {
-    let err = |field: &str, reason: String| BundleError {
-        file: path.to_path_buf(),
-        field: field.to_string(),
-        reason,
-    };
+    let err = |field: &str, reason: String| BundleError::at(path, field, reason);
     let manifest: Manifest = serde_json::from_str(json).map_err(|e| {
         err(
             "__metadata__.manifest",
@@ -238,11 +232,7 @@ fn check_declared_tensors(
     declared: &DeclaredTensors,
     path: &Path,
 ) -> Result<(), BundleError> {
-    let err = |field: &str, reason: String| BundleError {
-        file: path.to_path_buf(),
-        field: field.to_string(),
-        reason,
-    };
+    let err = |field: &str, reason: String| BundleError::at(path, field, reason);
     let mut expected: Vec<String> = Vec::with_capacity(declared.len());
     let mut check = |name: String, shape: &[usize]| -> Result<(), BundleError> {
         let Some((dtype, found)) = declared.get(&name) else {
@@ -314,11 +304,7 @@ fn check_declared_tensors(
 
 /// Validates and builds a policy from bundle bytes; `path` only names the source in errors.
 pub fn from_bytes(bytes: &[u8], path: &Path) -> Result<Policy, BundleError> {
-    let err = |field: &str, reason: String| BundleError {
-        file: path.to_path_buf(),
-        field: field.to_string(),
-        reason,
-    };
+    let err = |field: &str, reason: String| BundleError::at(path, field, reason);
     let (_, metadata) = SafeTensors::read_metadata(bytes).map_err(|e| {
         err(
             "safetensors header",
@@ -403,11 +389,7 @@ struct TensorReader<'a> {
 
 impl TensorReader<'_> {
     fn error(&self, field: &str, reason: String) -> BundleError {
-        BundleError {
-            file: self.path.to_path_buf(),
-            field: field.to_string(),
-            reason,
-        }
+        BundleError::at(self.path, field, reason)
     }
 
     fn tensor(&self, name: &str, shape: &[usize]) -> Result<Vec<f32>, BundleError> {

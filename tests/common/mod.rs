@@ -93,6 +93,21 @@ impl Server {
             .unwrap()
     }
 
+    /// A TLS channel to a server whose certificate (PEM) names localhost.
+    pub async fn tls_channel(&self, cert_pem: &str) -> Channel {
+        let port = self.addr.rsplit(':').next().unwrap();
+        let tls = tonic::transport::ClientTlsConfig::new()
+            .ca_certificate(tonic::transport::Certificate::from_pem(cert_pem))
+            .domain_name("localhost");
+        Channel::from_shared(format!("https://localhost:{port}"))
+            .unwrap()
+            .tls_config(tls)
+            .unwrap()
+            .connect()
+            .await
+            .unwrap()
+    }
+
     pub async fn client(&self) -> PracClient<Channel> {
         PracClient::connect(self.url()).await.unwrap()
     }
@@ -235,4 +250,14 @@ pub async fn h2_unary(
         .map(|v| v.to_str().unwrap().to_string())
         .unwrap_or_default();
     (status, data)
+}
+
+/// A self-signed certificate for localhost and its key, written into `dir` as cert.pem and
+/// key.pem: (the certificate's PEM, the certificate file, the key file).
+pub fn tls_files(dir: &Path) -> (String, PathBuf, PathBuf) {
+    let certified = rcgen::generate_simple_self_signed(vec!["localhost".to_string()]).unwrap();
+    let (cert, key) = (dir.join("cert.pem"), dir.join("key.pem"));
+    std::fs::write(&cert, certified.cert.pem()).unwrap();
+    std::fs::write(&key, certified.signing_key.serialize_pem()).unwrap();
+    (certified.cert.pem(), cert, key)
 }
