@@ -66,10 +66,16 @@ class Server:
         )
         assert self.process.stdout is not None
         line = self.process.stdout.readline()
-        if not line.startswith("listening on "):
-            raise RuntimeError(f"server did not start: {line!r} {self.stderr_path.read_text()}")
-        self.address = line.removeprefix("listening on ").strip()
-        self._wait_loaded()
+        try:
+            if not line.startswith("listening on "):
+                raise RuntimeError(f"server did not start: {line!r} {self.stderr_path.read_text()}")
+            self.address = line.removeprefix("listening on ").strip()
+            self._wait_loaded()
+        except BaseException:
+            # Nobody else holds this process yet: stop it rather than leak it.
+            self.process.kill()
+            self.process.wait(10)
+            raise
 
     def _wait_loaded(self) -> None:
         deadline = time.monotonic() + 20
