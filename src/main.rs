@@ -101,8 +101,9 @@ enum Command {
         #[arg(long, default_value_t = 1_000_000)]
         replay_transitions: usize,
     },
-    /// Microseconds per Replan for Hopper-sized networks at plan lengths 1, 8, 32, alone and
-    /// batched across sessions, against the machine's matmul rate.
+    /// The MLP kernel's GFLOP/s at 1 to 1024 rows per call, and microseconds per Replan for
+    /// Hopper-sized networks at plan lengths 1, 8, 32, alone and batched across sessions, against
+    /// the machine's matmul rate.
     BenchReplan {
         /// Seconds measured per case.
         #[arg(long, default_value_t = 1.0)]
@@ -212,8 +213,9 @@ fn main() -> ExitCode {
             let lengths: Vec<usize> = lengths.into_iter().filter(|&l| l > 0).collect();
             let batches: Vec<usize> = batches.into_iter().filter(|&b| b > 0).collect();
             let rows = prac::cli::bench::run(&lengths, &batches, per_case);
+            let kernel = prac::cli::bench::kernel(&[1, 8, 64, 256, 1024], per_case);
             let matmul = prac::cli::bench::matmul_gflops(per_case);
-            print!("{}", prac::cli::bench::report(&rows, matmul));
+            print!("{}", prac::cli::bench::report(&rows, &kernel, matmul));
             Ok(())
         }
     };

@@ -464,7 +464,7 @@ pub fn tensors(policy: &Policy) -> Vec<NamedTensor> {
             vec![d.output_dim(), d.input_dim()],
             d.weight_row_major(),
         ));
-        out.push((bias, vec![d.output_dim()], d.bias.as_slice().to_vec()));
+        out.push((bias, vec![d.output_dim()], d.bias().as_slice().to_vec()));
     }
     fn push_chain(out: &mut Vec<NamedTensor>, prefix: &str, mlp: &Mlp) {
         for (i, d) in mlp.layers().iter().enumerate() {

@@ -50,8 +50,8 @@ pub struct BenchRow {
 
 /// Times Replan at each plan length and batch size (sessions replanned together) for
 /// `per_case` wall time. Plans are held whole (eps huge, fixed length): every step checks
-/// length - 1 old actions and appends one, the costliest case. FLOPs are the dense count (the
-/// kernel skips ReLU zeros, so the rate is a dense-equivalent one).
+/// length - 1 old actions and appends one, the costliest case. FLOPs are the multiply-adds of
+/// every network evaluation, counted as two each.
 pub fn run(lengths: &[usize], batches: &[usize], per_case: Duration) -> Vec<BenchRow> {
     let policy = Arc::new(Policy::random(hopper_sized_manifest(), 1));
     let (actor_flops, critic_flops, model_flops) = policy.flops();
@@ -159,13 +159,65 @@ pub fn matmul_gflops(per_case: Duration) -> f64 {
     (2 * n * n * n) as f64 * runs as f64 / start.elapsed().as_secs_f64() / 1e9
 }
 
-pub fn report(rows: &[BenchRow], matmul: f64) -> String {
+/// The MLP kernel alone: one Hopper-sized critic (18 inputs, [256, 256] ReLU, 1 output) over
+/// `rows` states at a time.
+pub struct KernelRow {
+    pub rows: usize,
+    pub micros_per_call: f64,
+    pub gflops: f64,
+}
+
+/// Times the critic's forward at each batch size for `per_case` wall time.
+pub fn kernel(batch_rows: &[usize], per_case: Duration) -> Vec<KernelRow> {
+    let policy = Policy::random(hopper_sized_manifest(), 3);
+    let critic = &policy.critics[0];
+    let mut scratch = critic.scratch();
+    batch_rows
+        .iter()
+        .map(|&rows| {
+            let inputs: Vec<f32> = (0..rows * critic.input_dim())
+                .map(|i| (i as f32 * 0.37).sin())
+                .collect();
+            std::hint::black_box(critic.forward_rows(&inputs, &mut scratch));
+            let start = Instant::now();
+            let mut calls = 0u64;
+            while start.elapsed() < per_case {
+                std::hint::black_box(
+                    critic.forward_rows(std::hint::black_box(&inputs), &mut scratch),
+                );
+                calls += 1;
+            }
+            let seconds = start.elapsed().as_secs_f64();
+            KernelRow {
+                rows,
+                micros_per_call: seconds * 1e6 / calls as f64,
+                gflops: (critic.flops() * rows as u64 * calls) as f64 / seconds / 1e9,
+            }
+        })
+        .collect()
+}
+
+pub fn report(rows: &[BenchRow], kernel: &[KernelRow], matmul: f64) -> String {
     let mut out = format!(
-        "Replan, Hopper-sized networks (actor, 2 critics [256, 256]; model 4 x 64; obs 15, act 3)\n\
-         whole plan kept (worst case), one thread, f32; dense-equivalent GFLOP/s\n\
+        "MLP kernel: one critic (18 inputs, [256, 256] ReLU, 1 output), rows per call, one thread\n\
          machine matmul (512^3 sgemm, matrixmultiply, 1 thread): {matmul:.1} GFLOP/s\n\
-         plan_length  batch  replans  us/replan  GFLOP/s\n"
+         rows  us/call  GFLOP/s  of sgemm\n"
     );
+    for k in kernel {
+        out.push_str(&format!(
+            "{:>4}  {:>7.2}  {:>7.2}  {:>7.0}%\n",
+            k.rows,
+            k.micros_per_call,
+            k.gflops,
+            100.0 * k.gflops / matmul
+        ));
+    }
+    out.push('\n');
+    out.push_str(&format!(
+        "Replan, Hopper-sized networks (actor, 2 critics [256, 256]; model 4 x 64; obs 15, act 3)\n\
+         whole plan kept (worst case), one thread, f32; GFLOP/s\n\
+         plan_length  batch  replans  us/replan  GFLOP/s\n"
+    ));
     for r in rows {
         out.push_str(&format!(
             "{:>11}  {:>5}  {:>7}  {:>9.1}  {:>7.2}\n",

@@ -1,6 +1,7 @@
 //! f32 multilayer perceptrons on nalgebra matrices, evaluated over a batch of states stored as rows
 //! (one state per row). One kernel serves a single state (a batch of one) and cross-session
-//! batches: each weight column is loaded once per block of states. Buffers live in caller-owned
+//! batches: weights are packed into panels of 16 outputs, and each panel is read once per tile of
+//! up to 6 (AVX2) or 12 (AVX-512) states, whose accumulators stay in registers. Buffers live in caller-owned
 //! scratch and only grow, so a forward allocates nothing once a batch size has been seen.
 
 use nalgebra::{DMatrix, DVector};
@@ -24,30 +25,62 @@ impl Activation {
     }
 }
 
-/// One affine layer, PyTorch layout: `weight` is [out, in] (stored column-major, so a column is
-/// the weights of one input).
+/// One affine layer, PyTorch layout: `weight` is [out, in]. The kernels read a packed copy made
+/// once at construction, so the weights are immutable.
 #[derive(Clone, Debug)]
 pub struct Dense {
-    pub weight: DMatrix<f32>,
-    pub bias: DVector<f32>,
+    weight: DMatrix<f32>,
+    bias: DVector<f32>,
+    /// Panels of [`PANEL`] outputs; within a panel, each input's weights are contiguous
+    /// ([panel][input][PANEL]), so a register tile streams one panel from L1. The last panel and
+    /// `padded_bias` are padded with zeros.
+    packed: Vec<f32>,
+    padded_bias: Vec<f32>,
 }
 
-/// States per block of the kernel: the block's outputs stay in L1 while a weight column is reused.
-const BLOCK_ROWS: usize = 8;
+/// Outputs per panel of packed weights: two AVX2 registers or one AVX-512 register.
+const PANEL: usize = 16;
 
 impl Dense {
+    pub fn new(weight: DMatrix<f32>, bias: DVector<f32>) -> Dense {
+        let (out, inp) = weight.shape();
+        let panels = out.div_ceil(PANEL);
+        let mut packed = vec![0.0; panels * inp * PANEL];
+        for p in 0..panels {
+            for j in 0..inp {
+                for lane in 0..PANEL.min(out - p * PANEL) {
+                    packed[(p * inp + j) * PANEL + lane] = weight[(p * PANEL + lane, j)];
+                }
+            }
+        }
+        let mut padded_bias = vec![0.0; panels * PANEL];
+        padded_bias[..bias.len()].copy_from_slice(bias.as_slice());
+        Dense {
+            weight,
+            bias,
+            packed,
+            padded_bias,
+        }
+    }
     pub fn input_dim(&self) -> usize {
         self.weight.ncols()
     }
     pub fn output_dim(&self) -> usize {
         self.weight.nrows()
     }
+    /// The [out, in] weights.
+    pub fn weight(&self) -> &DMatrix<f32> {
+        &self.weight
+    }
+    pub fn bias(&self) -> &DVector<f32> {
+        &self.bias
+    }
     /// Builds a layer from row-major [out, in] weights, as stored in safetensors.
     pub fn from_row_major(out: usize, inp: usize, weight: &[f32], bias: &[f32]) -> Dense {
-        Dense {
-            weight: DMatrix::from_row_slice(out, inp, weight),
-            bias: DVector::from_column_slice(bias),
-        }
+        Dense::new(
+            DMatrix::from_row_slice(out, inp, weight),
+            DVector::from_column_slice(bias),
+        )
     }
     /// Row-major [out, in] weights, as stored in safetensors.
     pub fn weight_row_major(&self) -> Vec<f32> {
@@ -58,239 +91,199 @@ impl Dense {
     }
 
     /// `outputs[k] = W inputs[k] + b` for every row k: `inputs` is [n, in], `outputs` [n, out].
-    /// A row's result does not depend on the other rows. Uses AVX-512 or AVX2 + FMA register
-    /// tiles when the CPU has them (chosen at run time, so one build serves every x86-64); every
-    /// SIMD path computes each output as the same chain of fused multiply-adds, so they agree
-    /// bit for bit.
+    /// Uses AVX-512 or AVX2 + FMA register tiles when the CPU has them (chosen at run time, so
+    /// one build serves every x86-64). Every path computes each output as the same chain of fused
+    /// multiply-adds (from the bias, over the inputs in order), so they agree bit for bit and a
+    /// row's result does not depend on the other rows.
     pub fn forward_rows(&self, inputs: &[f32], outputs: &mut [f32]) {
         let (out, inp) = (self.output_dim(), self.input_dim());
-        debug_assert_eq!(inputs.len() % inp, 0);
-        debug_assert_eq!(outputs.len(), inputs.len() / inp * out);
-        for row in outputs.chunks_exact_mut(out) {
-            row.copy_from_slice(self.bias.as_slice());
-        }
-        let weights = self.weight.as_slice();
+        assert!(inp > 0 && inputs.len() % inp == 0 && outputs.len() == inputs.len() / inp * out);
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx512f") {
             // SAFETY: the CPU has the features the function is compiled for.
-            unsafe { accumulate_avx512(weights, out, inp, inputs, outputs) };
+            unsafe { self.forward_avx512(inputs, outputs) };
             return;
         }
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
             // SAFETY: the CPU has the features the function is compiled for.
-            unsafe { accumulate_avx2_fma(weights, out, inp, inputs, outputs) };
+            unsafe { self.forward_avx2(inputs, outputs) };
             return;
         }
-        accumulate(weights, out, inp, inputs, outputs);
+        self.forward_scalar(inputs, outputs);
     }
-}
 
-/// `outputs[k] += W inputs[k]`, W column-major [out, inp], for CPUs without AVX2: each weight
-/// column is loaded once per block of rows and added into the block's outputs, which stay in L1.
-/// The same fused multiply-add chain as the SIMD kernels, so every machine gives the same bits.
-fn accumulate(weights: &[f32], out: usize, inp: usize, inputs: &[f32], outputs: &mut [f32]) {
-    let n = inputs.len() / inp;
-    for block in (0..n).step_by(BLOCK_ROWS) {
-        let rows = block..(block + BLOCK_ROWS).min(n);
-        for (j, column) in weights.chunks_exact(out).enumerate() {
-            for k in rows.clone() {
-                let x = inputs[k * inp + j];
-                let y = &mut outputs[k * out..(k + 1) * out];
-                for (y, &w) in y.iter_mut().zip(column) {
-                    *y = w.mul_add(x, *y);
+    /// The kernels' arithmetic one output at a time, for CPUs without AVX2 (and as the tests'
+    /// reference): the same fused multiply-add chain, so every machine gives the same bits.
+    fn forward_scalar(&self, inputs: &[f32], outputs: &mut [f32]) {
+        let (out, inp) = (self.output_dim(), self.input_dim());
+        for (x, y) in inputs.chunks_exact(inp).zip(outputs.chunks_exact_mut(out)) {
+            for (o, y) in y.iter_mut().enumerate() {
+                let panel = &self.packed[(o / PANEL) * inp * PANEL..];
+                let mut acc = self.bias[o];
+                for (j, &x) in x.iter().enumerate() {
+                    acc = panel[j * PANEL + o % PANEL].mul_add(x, acc);
                 }
+                *y = acc;
             }
         }
     }
-}
 
-/// The AVX2 + FMA kernel: register tiles of 16 outputs x R rows accumulate over the inputs in
-/// order (the same order as the scalar remainder), so every output is the same whatever the
-/// batch size or the tile it falls in.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn accumulate_avx2_fma(
-    weights: &[f32],
-    out: usize,
-    inp: usize,
-    inputs: &[f32],
-    outputs: &mut [f32],
-) {
-    let n = inputs.len() / inp;
-    let mut row = 0;
-    while row < n {
-        let rows = (n - row).min(4);
-        // SAFETY: the tiles index within weights [inp * out], inputs [n * inp], outputs [n * out].
-        unsafe {
-            match rows {
-                4 => tile_rows::<4>(
-                    weights,
-                    out,
-                    inp,
-                    &inputs[row * inp..],
-                    &mut outputs[row * out..],
-                ),
-                3 => tile_rows::<3>(
-                    weights,
-                    out,
-                    inp,
-                    &inputs[row * inp..],
-                    &mut outputs[row * out..],
-                ),
-                2 => tile_rows::<2>(
-                    weights,
-                    out,
-                    inp,
-                    &inputs[row * inp..],
-                    &mut outputs[row * out..],
-                ),
-                _ => tile_rows::<1>(
-                    weights,
-                    out,
-                    inp,
-                    &inputs[row * inp..],
-                    &mut outputs[row * out..],
-                ),
-            }
-        }
-        row += rows;
-    }
-}
-
-/// The AVX-512 kernel: register tiles of 32 outputs x up to 6 rows, otherwise as the AVX2 one.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-unsafe fn accumulate_avx512(
-    weights: &[f32],
-    out: usize,
-    inp: usize,
-    inputs: &[f32],
-    outputs: &mut [f32],
-) {
-    let n = inputs.len() / inp;
-    let mut row = 0;
-    while row < n {
-        let rows = (n - row).min(6);
-        let (x, y) = (&inputs[row * inp..], &mut outputs[row * out..]);
-        // SAFETY: the tiles index within weights [inp * out], inputs [n * inp], outputs [n * out].
-        unsafe {
-            match rows {
-                6 => tile_rows_512::<6>(weights, out, inp, x, y),
-                5 => tile_rows_512::<5>(weights, out, inp, x, y),
-                4 => tile_rows_512::<4>(weights, out, inp, x, y),
-                3 => tile_rows_512::<3>(weights, out, inp, x, y),
-                2 => tile_rows_512::<2>(weights, out, inp, x, y),
-                _ => tile_rows_512::<1>(weights, out, inp, x, y),
-            }
-        }
-        row += rows;
-    }
-}
-
-/// R rows of the AVX-512 kernel: `inputs` and `outputs` start at the first of them.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-unsafe fn tile_rows_512<const R: usize>(
-    weights: &[f32],
-    out: usize,
-    inp: usize,
-    inputs: &[f32],
-    outputs: &mut [f32],
-) {
-    use std::arch::x86_64::*;
-    assert!(weights.len() >= inp * out && inputs.len() >= R * inp && outputs.len() >= R * out);
-    let (w, x, y) = (weights.as_ptr(), inputs.as_ptr(), outputs.as_mut_ptr());
-    let mut o = 0;
-    // SAFETY: o + 32 <= out, r < R and j < inp keep every pointer inside the checked lengths.
-    unsafe {
-        while o + 32 <= out {
-            let mut lo = [_mm512_setzero_ps(); R];
-            let mut hi = [_mm512_setzero_ps(); R];
-            for r in 0..R {
-                lo[r] = _mm512_loadu_ps(y.add(r * out + o));
-                hi[r] = _mm512_loadu_ps(y.add(r * out + o + 16));
-            }
-            for j in 0..inp {
-                let w_lo = _mm512_loadu_ps(w.add(j * out + o));
-                let w_hi = _mm512_loadu_ps(w.add(j * out + o + 16));
-                for r in 0..R {
-                    let xv = _mm512_set1_ps(*x.add(r * inp + j));
-                    lo[r] = _mm512_fmadd_ps(w_lo, xv, lo[r]);
-                    hi[r] = _mm512_fmadd_ps(w_hi, xv, hi[r]);
+    /// The AVX2 + FMA kernel: per panel of 16 outputs (in L1 while it lasts), tiles of up to 6
+    /// rows, 12 accumulators in registers.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn forward_avx2(&self, inputs: &[f32], outputs: &mut [f32]) {
+        let (out, inp) = (self.output_dim(), self.input_dim());
+        let n = inputs.len() / inp;
+        for p in 0..out.div_ceil(PANEL) {
+            let tile = Tile {
+                panel: &self.packed[p * inp * PANEL..(p + 1) * inp * PANEL],
+                bias: &self.padded_bias[p * PANEL..(p + 1) * PANEL],
+                first: p * PANEL,
+                inp,
+                out,
+            };
+            let mut row = 0;
+            while row < n {
+                let rows = (n - row).min(6);
+                let (x, y) = (&inputs[row * inp..], &mut outputs[row * out..]);
+                // SAFETY: the CPU has AVX2 and FMA (this function's features).
+                unsafe {
+                    match rows {
+                        6 => tile.avx2::<6>(x, y),
+                        5 => tile.avx2::<5>(x, y),
+                        4 => tile.avx2::<4>(x, y),
+                        3 => tile.avx2::<3>(x, y),
+                        2 => tile.avx2::<2>(x, y),
+                        _ => tile.avx2::<1>(x, y),
+                    }
                 }
+                row += rows;
             }
-            for r in 0..R {
-                _mm512_storeu_ps(y.add(r * out + o), lo[r]);
-                _mm512_storeu_ps(y.add(r * out + o + 16), hi[r]);
-            }
-            o += 32;
         }
     }
-    scalar_remainder::<R>(weights, out, inp, inputs, outputs, o);
-}
 
-/// Outputs from `from` on, one fused multiply-add at a time in the kernels' order.
-#[inline(always)]
-fn scalar_remainder<const R: usize>(
-    weights: &[f32],
-    out: usize,
-    inp: usize,
-    inputs: &[f32],
-    outputs: &mut [f32],
-    from: usize,
-) {
-    for o in from..out {
-        for r in 0..R {
-            let mut acc = outputs[r * out + o];
-            for j in 0..inp {
-                acc = weights[j * out + o].mul_add(inputs[r * inp + j], acc);
+    /// The AVX-512 kernel: as the AVX2 one with one register per row and tiles of up to 12 rows.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f")]
+    unsafe fn forward_avx512(&self, inputs: &[f32], outputs: &mut [f32]) {
+        let (out, inp) = (self.output_dim(), self.input_dim());
+        let n = inputs.len() / inp;
+        for p in 0..out.div_ceil(PANEL) {
+            let tile = Tile {
+                panel: &self.packed[p * inp * PANEL..(p + 1) * inp * PANEL],
+                bias: &self.padded_bias[p * PANEL..(p + 1) * PANEL],
+                first: p * PANEL,
+                inp,
+                out,
+            };
+            let mut row = 0;
+            while row < n {
+                let rows = (n - row).min(12);
+                let (x, y) = (&inputs[row * inp..], &mut outputs[row * out..]);
+                // SAFETY: the CPU has AVX-512F (this function's feature).
+                unsafe {
+                    match rows {
+                        12 => tile.avx512::<12>(x, y),
+                        11 => tile.avx512::<11>(x, y),
+                        10 => tile.avx512::<10>(x, y),
+                        9 => tile.avx512::<9>(x, y),
+                        8 => tile.avx512::<8>(x, y),
+                        7 => tile.avx512::<7>(x, y),
+                        6 => tile.avx512::<6>(x, y),
+                        5 => tile.avx512::<5>(x, y),
+                        4 => tile.avx512::<4>(x, y),
+                        3 => tile.avx512::<3>(x, y),
+                        2 => tile.avx512::<2>(x, y),
+                        _ => tile.avx512::<1>(x, y),
+                    }
+                }
+                row += rows;
             }
-            outputs[r * out + o] = acc;
         }
     }
 }
 
-/// R rows of the AVX2 kernel: `inputs` and `outputs` start at the first of them.
+/// One panel of packed weights and where its outputs go.
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn tile_rows<const R: usize>(
-    weights: &[f32],
-    out: usize,
+struct Tile<'a> {
+    panel: &'a [f32],
+    bias: &'a [f32],
+    /// The panel's first output.
+    first: usize,
     inp: usize,
-    inputs: &[f32],
-    outputs: &mut [f32],
-) {
-    use std::arch::x86_64::*;
-    assert!(weights.len() >= inp * out && inputs.len() >= R * inp && outputs.len() >= R * out);
-    let (w, x, y) = (weights.as_ptr(), inputs.as_ptr(), outputs.as_mut_ptr());
-    let mut o = 0;
-    // SAFETY: o + 16 <= out, r < R and j < inp keep every pointer inside the checked lengths.
-    unsafe {
-        while o + 16 <= out {
-            let mut lo = [_mm256_setzero_ps(); R];
-            let mut hi = [_mm256_setzero_ps(); R];
-            for r in 0..R {
-                lo[r] = _mm256_loadu_ps(y.add(r * out + o));
-                hi[r] = _mm256_loadu_ps(y.add(r * out + o + 8));
-            }
+    out: usize,
+}
+
+#[cfg(target_arch = "x86_64")]
+impl Tile<'_> {
+    /// Outputs of this panel that exist (the last panel may be partial).
+    fn width(&self) -> usize {
+        PANEL.min(self.out - self.first)
+    }
+
+    /// Writes one row's 16 accumulated outputs, only those that exist.
+    fn store(&self, row: &mut [f32], values: &[f32; PANEL]) {
+        let width = self.width();
+        row[self.first..self.first + width].copy_from_slice(&values[..width]);
+    }
+
+    /// R rows: `x` and `y` start at the first of them.
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn avx2<const R: usize>(&self, x: &[f32], y: &mut [f32]) {
+        use std::arch::x86_64::*;
+        let (inp, out) = (self.inp, self.out);
+        assert!(self.panel.len() >= inp * PANEL && self.bias.len() >= PANEL);
+        assert!(x.len() >= R * inp && y.len() >= (R - 1) * out + self.first + self.width());
+        let (w, xs) = (self.panel.as_ptr(), x.as_ptr());
+        // SAFETY: j < inp and r < R keep every read inside the lengths checked above.
+        unsafe {
+            let mut lo = [_mm256_loadu_ps(self.bias.as_ptr()); R];
+            let mut hi = [_mm256_loadu_ps(self.bias.as_ptr().add(8)); R];
             for j in 0..inp {
-                let w_lo = _mm256_loadu_ps(w.add(j * out + o));
-                let w_hi = _mm256_loadu_ps(w.add(j * out + o + 8));
+                let w_lo = _mm256_loadu_ps(w.add(j * PANEL));
+                let w_hi = _mm256_loadu_ps(w.add(j * PANEL + 8));
                 for r in 0..R {
-                    let xv = _mm256_set1_ps(*x.add(r * inp + j));
+                    let xv = _mm256_broadcast_ss(&*xs.add(r * inp + j));
                     lo[r] = _mm256_fmadd_ps(w_lo, xv, lo[r]);
                     hi[r] = _mm256_fmadd_ps(w_hi, xv, hi[r]);
                 }
             }
+            let mut values = [0.0f32; PANEL];
             for r in 0..R {
-                _mm256_storeu_ps(y.add(r * out + o), lo[r]);
-                _mm256_storeu_ps(y.add(r * out + o + 8), hi[r]);
+                _mm256_storeu_ps(values.as_mut_ptr(), lo[r]);
+                _mm256_storeu_ps(values.as_mut_ptr().add(8), hi[r]);
+                self.store(&mut y[r * out..], &values);
             }
-            o += 16;
         }
     }
-    scalar_remainder::<R>(weights, out, inp, inputs, outputs, o);
+
+    /// R rows: `x` and `y` start at the first of them.
+    #[target_feature(enable = "avx512f")]
+    unsafe fn avx512<const R: usize>(&self, x: &[f32], y: &mut [f32]) {
+        use std::arch::x86_64::*;
+        let (inp, out) = (self.inp, self.out);
+        assert!(self.panel.len() >= inp * PANEL && self.bias.len() >= PANEL);
+        assert!(x.len() >= R * inp && y.len() >= (R - 1) * out + self.first + self.width());
+        let (w, xs) = (self.panel.as_ptr(), x.as_ptr());
+        // SAFETY: j < inp and r < R keep every read inside the lengths checked above.
+        unsafe {
+            let mut acc = [_mm512_loadu_ps(self.bias.as_ptr()); R];
+            for j in 0..inp {
+                let wv = _mm512_loadu_ps(w.add(j * PANEL));
+                for r in 0..R {
+                    let xv = _mm512_set1_ps(*xs.add(r * inp + j));
+                    acc[r] = _mm512_fmadd_ps(wv, xv, acc[r]);
+                }
+            }
+            let mut values = [0.0f32; PANEL];
+            for r in 0..R {
+                _mm512_storeu_ps(values.as_mut_ptr(), acc[r]);
+                self.store(&mut y[r * out..], &values);
+            }
+        }
+    }
 }
 
 /// A chain of dense layers. The activation follows every hidden layer, and the last layer too when
@@ -508,6 +501,29 @@ mod tests {
                     (outputs[k * 37 + o] - expected).abs() < 1e-4,
                     "row {k} out {o}"
                 );
+            }
+        }
+    }
+
+    #[test]
+    fn every_kernel_gives_the_scalar_bits() {
+        // Partial panels (37 = 16 + 16 + 5 outputs), every tile height, one input.
+        for (out, inp) in [(37, 23), (16, 1), (5, 256), (256, 18)] {
+            let d = layer(out, inp, 5.0);
+            for n in [1, 2, 5, 6, 7, 12, 13, 25] {
+                let x: Vec<f32> = (0..n * inp).map(|i| (i as f32 * 0.29).sin()).collect();
+                let mut expected = vec![0.0; n * out];
+                d.forward_scalar(&x, &mut expected);
+                let mut got = vec![f32::NAN; n * out];
+                d.forward_rows(&x, &mut got);
+                assert_eq!(got, expected, "{out}x{inp}, {n} rows");
+                #[cfg(target_arch = "x86_64")]
+                if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+                    got.fill(f32::NAN);
+                    // SAFETY: the CPU has the features.
+                    unsafe { d.forward_avx2(&x, &mut got) };
+                    assert_eq!(got, expected, "avx2 {out}x{inp}, {n} rows");
+                }
             }
         }
     }

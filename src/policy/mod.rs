@@ -128,7 +128,7 @@ impl Policy {
 
     /// FLOPs of one evaluation of the actor (mean only), of one critic, and of the model.
     pub fn flops(&self) -> (u64, u64, u64) {
-        let head = 2 * (self.actor.mu.weight.len()) as u64;
+        let head = 2 * (self.actor.mu.weight().len()) as u64;
         let critic = self.critics.iter().map(Mlp::flops).sum::<u64>() / self.critics.len() as u64;
         (
             self.actor.trunk.flops() + head,

@@ -69,10 +69,10 @@ pub fn to_dense(layer: &Linear) -> Dense {
         .bias
         .as_ref()
         .map_or_else(|| vec![0.0; outputs], |b| values(b.val()));
-    Dense {
-        weight: nalgebra::DMatrix::from_column_slice(outputs, inputs, &weight),
-        bias: nalgebra::DVector::from_vec(bias),
-    }
+    Dense::new(
+        nalgebra::DMatrix::from_column_slice(outputs, inputs, &weight),
+        nalgebra::DVector::from_vec(bias),
+    )
 }
 
 /// An inference layer as a burn layer.
@@ -80,8 +80,8 @@ pub fn from_dense(dense: &Dense, device: &Device) -> Linear {
     linear_from(
         dense.input_dim(),
         dense.output_dim(),
-        dense.weight.as_slice().to_vec(),
-        dense.bias.as_slice().to_vec(),
+        dense.weight().as_slice().to_vec(),
+        dense.bias().as_slice().to_vec(),
         device,
     )
 }

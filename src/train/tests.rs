@@ -137,15 +137,18 @@ fn polyak_update_averages_towards_the_online_critic() {
     for c in 0..2 {
         for (l, layer) in after[c].layers().iter().enumerate() {
             let (t0, on) = (&before[c].layers()[l], &online[c].layers()[l]);
-            for i in 0..layer.weight.len() {
+            for i in 0..layer.weight().len() {
                 let expected =
-                    (1.0 - tau) * t0.weight.as_slice()[i] + tau * on.weight.as_slice()[i];
-                assert!((layer.weight.as_slice()[i] - expected).abs() < 1e-6);
+                    (1.0 - tau) * t0.weight().as_slice()[i] + tau * on.weight().as_slice()[i];
+                assert!((layer.weight().as_slice()[i] - expected).abs() < 1e-6);
             }
         }
     }
     // The online critics did move, so the test is not comparing equal tensors.
-    assert_ne!(online[0].layers()[0].weight, before[0].layers()[0].weight);
+    assert_ne!(
+        online[0].layers()[0].weight(),
+        before[0].layers()[0].weight()
+    );
 }
 
 #[test]
@@ -265,7 +268,7 @@ fn a_checkpoint_restores_the_exact_learner() {
     let a = sac.update(&b, &noise);
     let r = restored.update(&b, &noise);
     assert_eq!(a, r);
-    let weights = |s: &Sac| s.actor.to_actor(od).mu.weight.clone();
+    let weights = |s: &Sac| s.actor.to_actor(od).mu.weight().clone();
     assert_eq!(weights(&sac), weights(&restored));
     assert_eq!(
         model.update(&b.obs, &b.actions, &b.next_obs),
