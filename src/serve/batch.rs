@@ -2,10 +2,13 @@
 //! what is queued (waiting up to the batch window for more) and replan each policy's sessions
 //! together with [`replan_batch`], so that every network evaluation is a matrix product over the
 //! batch. A session always goes to the same worker, so its steps are replanned in the order they
-//! came. A full queue is answered at once with RESOURCE_EXHAUSTED.
+//! came. A full queue is answered at once with RESOURCE_EXHAUSTED. A step that finds no other
+//! step waiting is replanned in its request handler instead ([`Batcher::claim_alone`]): alone it has
+//! nothing to batch with, and the hand-off to a worker thread would cost more than it saves.
 
 use std::collections::HashMap;
 use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
 use crossbeam_channel::{Receiver, Sender, TrySendError};
@@ -46,6 +49,24 @@ struct Work {
 pub struct Batcher {
     queues: Vec<Sender<Work>>,
     capacity: usize,
+    /// Steps submitted whose callers still wait for their answers.
+    waiting: Arc<AtomicUsize>,
+}
+
+/// Counts one waiting caller while it lives (a dropped, cancelled call included).
+pub struct Waiting<'a>(&'a AtomicUsize);
+
+impl<'a> Waiting<'a> {
+    fn enter(count: &'a AtomicUsize) -> Waiting<'a> {
+        count.fetch_add(1, Ordering::AcqRel);
+        Waiting(count)
+    }
+}
+
+impl Drop for Waiting<'_> {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::AcqRel);
+    }
 }
 
 impl Batcher {
@@ -66,7 +87,19 @@ impl Batcher {
         Batcher {
             queues,
             capacity: per_worker,
+            waiting: Arc::default(),
         }
+    }
+
+    /// When no step is queued or being replanned, a step has nothing to be batched with: this
+    /// claims the right to replan it in its handler, until the guard drops. Steps that come
+    /// meanwhile are batched. A session's steps keep their order, since its next step cannot
+    /// claim while an earlier one waits.
+    pub fn claim_alone(&self) -> Option<Waiting<'_>> {
+        self.waiting
+            .compare_exchange(0, 1, Ordering::AcqRel, Ordering::Acquire)
+            .ok()
+            .map(|_| Waiting(&self.waiting))
     }
 
     /// Queues a step and waits for its answer, until `deadline`. A step is applied only if its
@@ -78,6 +111,7 @@ impl Batcher {
         request: proto::StepRequest,
         deadline: Option<Instant>,
     ) -> Answer {
+        let _waiting = Waiting::enter(&self.waiting);
         let (reply, mut answer) = oneshot::channel();
         // One worker per session keeps its steps in order.
         let worker =

@@ -221,10 +221,14 @@ impl ServerState {
         if deadline::passed(deadline) {
             return Err(deadline::exceeded());
         }
-        if let Some(batcher) = &self.batcher {
-            return batcher.step(slot.clone(), request, deadline).await;
-        }
-        // Without batching, each thread keeps one evaluator per policy for the sessions it
+        let _alone = match &self.batcher {
+            Some(batcher) => match batcher.claim_alone() {
+                Some(alone) => Some(alone),
+                None => return batcher.step(slot.clone(), request, deadline).await,
+            },
+            None => None,
+        };
+        // Alone or without batching, each thread keeps one evaluator per policy for the sessions it
         // serves: memory grows with threads, not sessions.
         thread_local! {
             static INLINE: RefCell<HashMap<*const Policy, (Evaluator, ReplanScratch)>> =
