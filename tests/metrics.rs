@@ -1,5 +1,6 @@
 //! Prometheus metrics over HTTP: steps, latency histogram, open sessions, plan breaks, forecast
-//! length and errors by status code, read from a real server's /metrics.
+//! length, where steps were replanned and errors by status code, read from a real server's
+//! /metrics.
 
 mod common;
 
@@ -107,4 +108,41 @@ async fn metrics_count_steps_sessions_and_errors() {
     );
     assert_eq!(sample(&text, "prac_errors_total{code=\"NotFound\"}"), 2.0);
     assert_eq!(sample(&text, "prac_session_evictions_total"), 0.0);
+    // One session's steps never overlap: each is replanned alone, in its handler.
+    assert_eq!(sample(&text, "prac_replanned_total{by=\"handler\"}"), 5.0);
+    assert!(!text.contains("prac_replanned_total{by=\"batch_worker\"}"));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_batch_window_sends_every_step_to_the_batch_workers() {
+    let bundles = bundle_dir();
+    let server = Server::start(
+        bundles.path(),
+        &["--metrics-listen", "127.0.0.1:0", "--batch-window", "1ms"],
+    );
+    let addr = server
+        .preamble
+        .iter()
+        .find_map(|l| l.strip_prefix("metrics on "))
+        .expect("the metrics address")
+        .to_string();
+    server.wait_serving().await;
+    let mut client = server.client().await;
+    let id = common::open_default_session(&mut client, "toy").await;
+    for k in 0..3 {
+        client
+            .step(proto::StepRequest {
+                session_id: id.clone(),
+                observation: vec![0.1 * k as f32; OBS],
+                new_episode: k == 0,
+            })
+            .await
+            .unwrap();
+    }
+    let text = scrape(&addr);
+    assert_eq!(
+        sample(&text, "prac_replanned_total{by=\"batch_worker\"}"),
+        3.0
+    );
+    assert!(!text.contains("prac_replanned_total{by=\"handler\"}"));
 }

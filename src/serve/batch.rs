@@ -4,7 +4,8 @@
 //! batch. A session always goes to the same worker, so its steps are replanned in the order they
 //! came. A full queue is answered at once with RESOURCE_EXHAUSTED. A step that finds no other
 //! step waiting is replanned in its request handler instead ([`Batcher::claim_alone`]): alone it has
-//! nothing to batch with, and the hand-off to a worker thread would cost more than it saves.
+//! nothing to batch with, and the hand-off to a worker thread would cost more than it saves. A
+//! batch window (steps wait for company) turns this off.
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -51,6 +52,8 @@ pub struct Batcher {
     capacity: usize,
     /// Steps submitted whose callers still wait for their answers.
     waiting: Arc<AtomicUsize>,
+    /// A batch window asks steps to wait for company: then no step is replanned alone.
+    inline_when_alone: bool,
 }
 
 /// Counts one waiting caller while it lives (a dropped, cancelled call included).
@@ -88,14 +91,18 @@ impl Batcher {
             queues,
             capacity: per_worker,
             waiting: Arc::default(),
+            inline_when_alone: config.window.is_zero(),
         }
     }
 
-    /// When no step is queued or being replanned, a step has nothing to be batched with: this
-    /// claims the right to replan it in its handler, until the guard drops. Steps that come
-    /// meanwhile are batched. A session's steps keep their order, since its next step cannot
-    /// claim while an earlier one waits.
+    /// When no step is queued or being replanned (and no batch window is set), a step has
+    /// nothing to be batched with: this claims the right to replan it in its handler, until the
+    /// guard drops. Steps that come meanwhile are batched. A session's steps keep their order,
+    /// since its next step cannot claim while an earlier one waits.
     pub fn claim_alone(&self) -> Option<Waiting<'_>> {
+        if !self.inline_when_alone {
+            return None;
+        }
         self.waiting
             .compare_exchange(0, 1, Ordering::AcqRel, Ordering::Acquire)
             .ok()

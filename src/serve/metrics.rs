@@ -35,6 +35,16 @@ pub struct Metrics {
     forecast_length: Histogram,
     errors: Family<Labels, Counter>,
     reloads: Family<Labels, Counter>,
+    replanned: Family<Labels, Counter>,
+}
+
+/// Where a step was replanned.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ReplannedBy {
+    /// In its request handler: alone, or with batching off.
+    Handler,
+    /// By a batch worker, with the steps queued with it.
+    BatchWorker,
 }
 
 impl Default for Metrics {
@@ -52,6 +62,7 @@ impl Default for Metrics {
             forecast_length: Histogram::new(exponential_buckets(1.0, 2.0, 9)),
             errors: Family::default(),
             reloads: Family::default(),
+            replanned: Family::default(),
         };
         let mut m = m;
         let r = &mut m.registry;
@@ -92,6 +103,11 @@ impl Default for Metrics {
             m.errors.clone(),
         );
         r.register(
+            "replanned",
+            "Steps replanned, by where: in their request handler or by a batch worker",
+            m.replanned.clone(),
+        );
+        r.register(
             "reloads",
             "Bundle reloads (SIGHUP), by result",
             m.reloads.clone(),
@@ -116,6 +132,14 @@ impl Metrics {
         if broke {
             self.plan_breaks.inc();
         }
+    }
+
+    pub fn replanned(&self, by: ReplannedBy) {
+        let by = match by {
+            ReplannedBy::Handler => "handler",
+            ReplannedBy::BatchWorker => "batch_worker",
+        };
+        self.replanned.get_or_create(&vec![("by", by.into())]).inc();
     }
 
     pub fn error(&self, status: &tonic::Status) {

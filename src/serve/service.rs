@@ -14,6 +14,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use super::batch::{Answer, Batcher};
 use super::deadline;
+use super::metrics::ReplannedBy;
 use super::registry::Registry;
 use super::session::{
     Session, SessionError, SessionSettings, SessionSlot, Sessions, StepError, new_session_id,
@@ -224,7 +225,13 @@ impl ServerState {
         let _alone = match &self.batcher {
             Some(batcher) => match batcher.claim_alone() {
                 Some(alone) => Some(alone),
-                None => return batcher.step(slot.clone(), request, deadline).await,
+                None => {
+                    let answer = batcher.step(slot.clone(), request, deadline).await;
+                    if answer.is_ok() {
+                        self.metrics.replanned(ReplannedBy::BatchWorker);
+                    }
+                    return answer;
+                }
             },
             None => None,
         };
@@ -255,6 +262,7 @@ impl ServerState {
                 &request.observation,
                 request.new_episode,
             )?;
+            self.metrics.replanned(ReplannedBy::Handler);
             Ok((session.response(&report), report.served))
         })
     }
