@@ -92,7 +92,13 @@ fn plan_once(policy: Arc<Policy>) {
     let mut session = Session::new("fuzz".into(), policy.clone(), settings);
     let mut evaluator = Evaluator::for_sessions(policy, 1);
     let mut scratch = ReplanScratch::new(od, ad);
-    if let Ok(report) = session.step(&mut evaluator, &mut scratch, &vec![0.0; od], true) {
+    if let Ok(report) = session.step(
+        &mut evaluator,
+        &mut scratch,
+        &vec![0.0; od],
+        true,
+        crate::serve::arrival::Arrival::next(),
+    ) {
         let response = session.response(&report);
         assert!(response.action.iter().all(|a| a.is_finite()));
     }
@@ -195,6 +201,7 @@ pub fn requests(data: &[u8]) {
             &mut scratch,
             &step.observation,
             step.new_episode,
+            crate::serve::arrival::Arrival::next(),
         ) {
             let response = session.response(&report);
             assert!(!response.forecast.is_empty() && response.forecast.len() <= 257);

@@ -16,6 +16,7 @@ use crossbeam_channel::{Receiver, Sender, TrySendError};
 use tokio::sync::oneshot;
 use tonic::Status;
 
+use super::arrival::Arrival;
 use super::session::{Begun, SessionSlot};
 use crate::plan::{NonFinite, ReplanOutcome, ReplanScratch, replan_batch};
 use crate::policy::{Evaluator, Policy};
@@ -42,6 +43,7 @@ struct Work {
     /// The caller's deadline; a step not replanned by then is answered DEADLINE_EXCEEDED and
     /// not applied.
     deadline: Option<Instant>,
+    arrival: Arrival,
     reply: oneshot::Sender<Answer>,
 }
 
@@ -117,6 +119,7 @@ impl Batcher {
         slot: Arc<SessionSlot>,
         request: proto::StepRequest,
         deadline: Option<Instant>,
+        arrival: Arrival,
     ) -> Answer {
         let _waiting = Waiting::enter(&self.waiting);
         let (reply, mut answer) = oneshot::channel();
@@ -127,6 +130,7 @@ impl Batcher {
             slot,
             request,
             deadline,
+            arrival,
             reply,
         };
         match self.queues[worker].try_send(work) {
@@ -256,7 +260,7 @@ impl Worker {
         let mut replies = Vec::with_capacity(works.len());
         for work in works {
             slots.push(work.slot);
-            requests.push(work.request);
+            requests.push((work.request, work.arrival));
             replies.push(work.reply);
         }
         // Answered under the sessions' locks, so that a step taken back (its caller gave up) is
@@ -266,7 +270,10 @@ impl Worker {
             let begun: Vec<Result<Begun, Status>> = sessions
                 .iter()
                 .zip(&requests)
-                .map(|(s, r)| s.begin(&r.observation, r.new_episode).map_err(Status::from))
+                .map(|(s, (r, arrival))| {
+                    s.begin(&r.observation, r.new_episode, *arrival)
+                        .map_err(Status::from)
+                })
                 .collect();
             let mut rngs: Vec<_> = sessions.iter().map(|s| s.rng()).collect();
             let policy = sessions[0].policy.clone();
@@ -288,7 +295,7 @@ impl Worker {
                 .zip(&begun)
             {
                 if let Ok(begun) = begun {
-                    jobs.push(session.job(&request.observation, begun, rng));
+                    jobs.push(session.job(&request.0.observation, begun, rng));
                 }
             }
             let mut results: Vec<Result<ReplanOutcome, NonFinite>> =

@@ -1,5 +1,6 @@
 //! `prac serve`: the gRPC daemon.
 
+pub mod arrival;
 pub mod auth;
 pub mod batch;
 pub mod config;

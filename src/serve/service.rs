@@ -12,6 +12,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status, Streaming};
 
+use super::arrival::Arrival;
 use super::batch::{Answer, Batcher};
 use super::deadline;
 use super::metrics::ReplannedBy;
@@ -54,7 +55,10 @@ impl From<SessionError> for Status {
 
 impl From<StepError> for Status {
     fn from(e: StepError) -> Status {
-        Status::invalid_argument(e.to_string())
+        match e {
+            StepError::OvertakenBy => Status::aborted(e.to_string()),
+            e => Status::invalid_argument(e.to_string()),
+        }
     }
 }
 
@@ -184,6 +188,7 @@ impl ServerState {
         request: proto::StepRequest,
         caller: Option<&str>,
         deadline: Option<Instant>,
+        arrival: Arrival,
     ) -> Result<Answered, Status> {
         let start = Instant::now();
         let slot = match self.sessions.get(&request.session_id, caller) {
@@ -194,7 +199,7 @@ impl ServerState {
                 return Err(status);
             }
         };
-        let result = self.step_in(&slot, request, deadline).await;
+        let result = self.step_in(&slot, request, deadline, arrival).await;
         match &result {
             Ok((response, _)) => self.metrics.step(
                 &slot.steps_served,
@@ -218,6 +223,7 @@ impl ServerState {
         slot: &Arc<SessionSlot>,
         request: proto::StepRequest,
         deadline: Option<Instant>,
+        arrival: Arrival,
     ) -> Answer {
         if deadline::passed(deadline) {
             return Err(deadline::exceeded());
@@ -226,7 +232,7 @@ impl ServerState {
             Some(batcher) => match batcher.claim_alone() {
                 Some(alone) => Some(alone),
                 None => {
-                    let answer = batcher.step(slot.clone(), request, deadline).await;
+                    let answer = batcher.step(slot.clone(), request, deadline, arrival).await;
                     if answer.is_ok() {
                         self.metrics.replanned(ReplannedBy::BatchWorker);
                     }
@@ -261,6 +267,7 @@ impl ServerState {
                 scratch,
                 &request.observation,
                 request.new_episode,
+                arrival,
             )?;
             self.metrics.replanned(ReplannedBy::Handler);
             Ok((session.response(&report), report.served))
@@ -339,10 +346,11 @@ impl Prac for PracService {
         request: Request<proto::StepRequest>,
     ) -> Result<Response<proto::StepResponse>, Status> {
         let deadline = deadline::of(request.metadata(), Instant::now());
+        let arrival = Arrival::of(request.extensions());
         let caller = self.state.caller(request.metadata())?;
         // Returned at once, so the response reaches the transport: the step stays applied.
         self.state
-            .step(request.into_inner(), caller.as_deref(), deadline)
+            .step(request.into_inner(), caller.as_deref(), deadline, arrival)
             .await
             .map(|answered| Response::new(answered.response))
     }
@@ -377,7 +385,11 @@ impl Prac for PracService {
                                 break;
                             }
                         };
-                        let answered = state.step(request, caller.as_deref(), deadline).await;
+                        // A stream's messages arrive in order: each is stamped as it is read.
+                        let arrival = Arrival::next();
+                        let answered = state
+                            .step(request, caller.as_deref(), deadline, arrival)
+                            .await;
                         let failed = answered.is_err();
                         let (response, applied) = match answered {
                             Ok(answered) => (Ok(answered.response), Some(answered.undo)),

@@ -10,6 +10,7 @@ use rand::{RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use tokio::sync::watch;
 
+use super::arrival::Arrival;
 use crate::plan::{
     Commitment, DEFAULT_MAX_HORIZON, Growth, NonFinite, Plan, ReplanConfig, ReplanJob,
     ReplanOutcome, ReplanScratch, replan_batch,
@@ -134,6 +135,11 @@ pub enum StepError {
     InvalidObservation(String),
     #[error("observation could not be planned from: {0}; the session's plan is unchanged")]
     NonFinite(#[from] NonFinite),
+    #[error(
+        "a step of this session that reached the server after this one was applied first; \
+         this one changes nothing"
+    )]
+    OvertakenBy,
 }
 
 /// A checked step, before its replan: its index and whether it starts an episode.
@@ -141,6 +147,7 @@ pub enum StepError {
 pub struct Begun {
     pub step: u64,
     pub fresh: bool,
+    pub arrival: Arrival,
 }
 
 /// What one step did, for the response.
@@ -170,6 +177,8 @@ pub struct Session {
     plan_updates: watch::Sender<Arc<proto::Plan>>,
     /// What the last commit replaced, so a step whose answer never left the server is taken back.
     before_last_commit: Option<BeforeCommit>,
+    /// The arrival of the last applied step.
+    last_arrival: Arrival,
 }
 
 /// A session's counters and rng before a commit.
@@ -177,6 +186,7 @@ struct BeforeCommit {
     rng: ChaCha8Rng,
     step: Option<u64>,
     episode: u64,
+    last_arrival: Arrival,
 }
 
 impl Session {
@@ -199,6 +209,7 @@ impl Session {
             settings,
             plan_updates,
             before_last_commit: None,
+            last_arrival: Arrival::default(),
         }
     }
 
@@ -220,9 +231,10 @@ impl Session {
         scratch: &mut ReplanScratch,
         observation: &[f32],
         new_episode: bool,
+        arrival: Arrival,
     ) -> Result<StepReport, StepError> {
         debug_assert!(Arc::ptr_eq(evaluator.policy(), &self.policy));
-        let begun = self.begin(observation, new_episode)?;
+        let begun = self.begin(observation, new_episode, arrival)?;
         // A failed replan must not advance the session's rng either.
         let mut rng = self.rng.clone();
         let mut results = [Ok(ReplanOutcome {
@@ -236,8 +248,18 @@ impl Session {
         Ok(self.commit(&begun, result?, rng))
     }
 
-    /// Checks the observation and works out the step index; changes nothing.
-    pub fn begin(&self, observation: &[f32], new_episode: bool) -> Result<Begun, StepError> {
+    /// Checks the observation and the step's arrival, and works out the step index; changes
+    /// nothing. A step that arrived before the last applied one is refused: its caller sent a
+    /// later step meanwhile (it gave up on this one, or sent both at once).
+    pub fn begin(
+        &self,
+        observation: &[f32],
+        new_episode: bool,
+        arrival: Arrival,
+    ) -> Result<Begun, StepError> {
+        if arrival < self.last_arrival {
+            return Err(StepError::OvertakenBy);
+        }
         let obs_dim = self.policy.obs_dim();
         if observation.len() != obs_dim {
             return Err(StepError::InvalidObservation(format!(
@@ -258,7 +280,11 @@ impl Session {
             Some(prev) if !fresh => prev + 1,
             _ => 0,
         };
-        Ok(Begun { step, fresh })
+        Ok(Begun {
+            step,
+            fresh,
+            arrival,
+        })
     }
 
     /// The Replan job of this step: the new plan goes to the spare buffer, so a failed replan
@@ -286,7 +312,9 @@ impl Session {
             rng: std::mem::replace(&mut self.rng, rng),
             step: self.step,
             episode: self.episode,
+            last_arrival: self.last_arrival,
         });
+        self.last_arrival = begun.arrival;
         self.commitment.commit();
         if begun.fresh && self.step.is_some() {
             self.episode += 1;
@@ -320,6 +348,7 @@ impl Session {
         self.rng = before.rng;
         self.step = before.step;
         self.episode = before.episode;
+        self.last_arrival = before.last_arrival;
         self.steps_served -= 1;
         if self.plan_updates.receiver_count() > 0 {
             self.plan_updates.send_replace(Arc::new(self.plan_proto()));
@@ -742,7 +771,9 @@ mod tests {
     fn step(s: &mut Session, obs: &[f32]) -> proto::StepResponse {
         let mut evaluator = Evaluator::for_sessions(s.policy.clone(), 1);
         let mut scratch = ReplanScratch::new(3, 2);
-        let report = s.step(&mut evaluator, &mut scratch, obs, false).unwrap();
+        let report = s
+            .step(&mut evaluator, &mut scratch, obs, false, Arrival::next())
+            .unwrap();
         s.response(&report)
     }
 
@@ -772,6 +803,27 @@ mod tests {
         assert_eq!(ra.step, 1);
         assert_ne!(lost.forecast, ra.forecast);
         assert_eq!(a.plan_proto(), b.plan_proto());
+    }
+
+    #[test]
+    fn a_step_overtaken_by_a_later_arrival_is_refused_and_changes_nothing() {
+        let policy = policy();
+        let mut s = session(&policy, proto::SessionOptions::default());
+        let mut evaluator = Evaluator::for_sessions(policy.clone(), 1);
+        let mut scratch = ReplanScratch::new(3, 2);
+        let (early, late, later) = (Arrival::next(), Arrival::next(), Arrival::next());
+        let obs = [0.1, 0.2, 0.3];
+        let mut step =
+            |s: &mut Session, arrival| s.step(&mut evaluator, &mut scratch, &obs, false, arrival);
+        assert_eq!(step(&mut s, late).unwrap().step, 0);
+        let plan = s.plan_proto();
+        assert!(matches!(step(&mut s, early), Err(StepError::OvertakenBy)));
+        assert_eq!(s.plan_proto(), plan);
+        assert_eq!(s.steps_served(), 1);
+        // A step taken back is as if it never arrived: an earlier one may go after all.
+        let served = step(&mut s, later).unwrap().served;
+        assert!(s.take_back(served));
+        assert_eq!(step(&mut s, late).unwrap().step, 1);
     }
 
     #[test]

@@ -395,7 +395,11 @@ impl hyper::service::Service<http::Request<Incoming>> for Tracked {
     type Error = std::convert::Infallible;
     type Future = BoxFuture<Result<Self::Response, Self::Error>>;
 
-    fn call(&self, request: http::Request<Incoming>) -> Self::Future {
+    fn call(&self, mut request: http::Request<Incoming>) -> Self::Future {
+        // Called in the connection's order of streams, before any handler runs.
+        request
+            .extensions_mut()
+            .insert(super::arrival::Arrival::next());
         let in_flight = self.activity.started();
         let mut routes = self.routes.clone();
         Box::pin(async move {
