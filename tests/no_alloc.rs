@@ -7,6 +7,7 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 use prac::plan::{ReplanConfig, ReplanScratch};
 use prac::policy::{Evaluator, Policy, hopper_sized_manifest};
+use prac::serve::arrival::Arrival;
 use prac::serve::session::{Session, SessionSettings};
 
 struct Counting;
@@ -52,13 +53,19 @@ fn steps_after_the_first_do_not_allocate() {
         let mut scratch = ReplanScratch::new(15, 3);
         let mut obs: Vec<f32> = (0..15).map(|i| (i as f32 * 0.3).sin()).collect();
         session
-            .step(&mut evaluator, &mut scratch, &obs, true)
+            .step(&mut evaluator, &mut scratch, &obs, true, Arrival::next())
             .unwrap();
         COUNTING.store(true, Ordering::SeqCst);
         for t in 0..200 {
             obs[t % 15] += 0.01;
             session
-                .step(&mut evaluator, &mut scratch, &obs, t % 50 == 0)
+                .step(
+                    &mut evaluator,
+                    &mut scratch,
+                    &obs,
+                    t % 50 == 0,
+                    Arrival::next(),
+                )
                 .unwrap();
         }
         COUNTING.store(false, Ordering::SeqCst);

@@ -213,11 +213,11 @@ pub fn report(rows: &[BenchRow], kernel: &[KernelRow], matmul: f64) -> String {
         ));
     }
     out.push('\n');
-    out.push_str(&format!(
+    out.push_str(
         "Replan, Hopper-sized networks (actor, 2 critics [256, 256]; model 4 x 64; obs 15, act 3)\n\
          whole plan kept (worst case), one thread, f32; GFLOP/s\n\
-         plan_length  batch  replans  us/replan  GFLOP/s\n"
-    ));
+         plan_length  batch  replans  us/replan  GFLOP/s\n",
+    );
     for r in rows {
         out.push_str(&format!(
             "{:>11}  {:>5}  {:>7}  {:>9.1}  {:>7.2}\n",

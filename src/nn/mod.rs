@@ -97,7 +97,11 @@ impl Dense {
     /// row's result does not depend on the other rows.
     pub fn forward_rows(&self, inputs: &[f32], outputs: &mut [f32]) {
         let (out, inp) = (self.output_dim(), self.input_dim());
-        assert!(inp > 0 && inputs.len() % inp == 0 && outputs.len() == inputs.len() / inp * out);
+        assert!(
+            inp > 0
+                && inputs.len().is_multiple_of(inp)
+                && outputs.len() == inputs.len() / inp * out
+        );
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx512f") {
             // SAFETY: the CPU has the features the function is compiled for.
@@ -272,14 +276,14 @@ impl Tile<'_> {
             let mut acc = [_mm512_loadu_ps(self.bias.as_ptr()); R];
             for j in 0..inp {
                 let wv = _mm512_loadu_ps(w.add(j * PANEL));
-                for r in 0..R {
+                for (r, acc) in acc.iter_mut().enumerate() {
                     let xv = _mm512_set1_ps(*xs.add(r * inp + j));
-                    acc[r] = _mm512_fmadd_ps(wv, xv, acc[r]);
+                    *acc = _mm512_fmadd_ps(wv, xv, *acc);
                 }
             }
             let mut values = [0.0f32; PANEL];
-            for r in 0..R {
-                _mm512_storeu_ps(values.as_mut_ptr(), acc[r]);
+            for (r, acc) in acc.iter().enumerate() {
+                _mm512_storeu_ps(values.as_mut_ptr(), *acc);
                 self.store(&mut y[r * out..], &values);
             }
         }
