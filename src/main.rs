@@ -114,6 +114,13 @@ enum Command {
         /// Sessions replanned together (cross-session batch sizes).
         #[arg(long, value_delimiter = ',', default_value = "1,8,64")]
         batches: Vec<usize>,
+        /// Instead: Replan on these bundles (repeatable), one session in-process on its domain's
+        /// simulated trajectories: microseconds, FLOPs and network calls per step.
+        #[arg(long)]
+        bundle: Vec<std::path::PathBuf>,
+        /// eps coefficient of --bundle's session (eps = coef x (V_pi - V_rand)).
+        #[arg(long, default_value_t = 0.005)]
+        epsilon_coef: f64,
     },
 }
 
@@ -206,8 +213,24 @@ fn main() -> ExitCode {
         .map(|b| print!("{}", prac::train::bench::report(&b))),
         Command::BenchReplan {
             seconds,
+            bundle,
+            epsilon_coef,
+            ..
+        } if !bundle.is_empty() => (|| {
+            let per_case = Duration::from_secs_f64(seconds);
+            let rows = bundle
+                .iter()
+                .map(|path| prac::cli::bench::bundle_replan(path, epsilon_coef, per_case))
+                .collect::<anyhow::Result<Vec<_>>>()?;
+            let matmul = prac::cli::bench::matmul_gflops(per_case);
+            print!("{}", prac::cli::bench::bundle_report(&rows, matmul));
+            Ok(())
+        })(),
+        Command::BenchReplan {
+            seconds,
             lengths,
             batches,
+            ..
         } => {
             let per_case = Duration::from_secs_f64(seconds);
             let lengths: Vec<usize> = lengths.into_iter().filter(|&l| l > 0).collect();

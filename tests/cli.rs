@@ -1,4 +1,5 @@
-//! `prac inspect` on bundles written by test code, and `prac evaluate` on a shipped one.
+//! `prac inspect` on bundles written by test code, `prac evaluate` on a shipped one, and
+//! `prac bench-replan --bundle`.
 
 mod common;
 
@@ -184,4 +185,39 @@ fn bench_train_times_updates_a_short_run_and_the_replay_checkpoint() {
     ] {
         assert!(text.contains(line), "no '{line}' in:\n{text}");
     }
+}
+
+#[test]
+fn bench_replan_on_a_bundle_plays_its_domain_and_refuses_a_foreign_one() {
+    let bundle = concat!(env!("CARGO_MANIFEST_DIR"), "/bundles/pendulum.safetensors");
+    let out = prac(&["bench-replan", "--seconds", "0.05", "--bundle", bundle]);
+    assert!(out.status.success(), "{out:?}");
+    let text = String::from_utf8(out.stdout).unwrap();
+    let row = text
+        .lines()
+        .find(|l| l.starts_with("pendulum "))
+        .unwrap_or_else(|| panic!("no pendulum row in\n{text}"));
+    let values: Vec<f64> = row
+        .split_whitespace()
+        .skip(1)
+        .map(|v| v.trim_end_matches('%').parse().unwrap())
+        .collect();
+    // steps, us/step, tested, plan, calls, MFLOP/step: a real run's figures, all positive.
+    assert!(values[0] >= 100.0, "{row}");
+    assert!(values[1..6].iter().all(|&v| v > 0.0), "{row}");
+
+    // A bundle whose domain this build does not have.
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("toy.safetensors");
+    prac::bundle::save(&toy_policy("toy", 4), &file).unwrap();
+    let out = prac(&[
+        "bench-replan",
+        "--seconds",
+        "0.05",
+        "--bundle",
+        file.to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(err.contains("domain"), "{err}");
 }

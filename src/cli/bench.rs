@@ -11,12 +11,13 @@ use crate::plan::{
 };
 use crate::policy::{Evaluator, Policy, hopper_sized_manifest};
 
-/// Counts network evaluations, to turn time into FLOP/s.
+/// Counts network evaluations (rows), to turn time into FLOP/s, and calls.
 struct Counting<N> {
     inner: N,
     acts: u64,
     qs: u64,
     predicts: u64,
+    calls: u64,
 }
 
 impl<N: Networks> Networks for Counting<N> {
@@ -27,14 +28,17 @@ impl<N: Networks> Networks for Counting<N> {
         self.inner.act_dim()
     }
     fn act(&mut self, obs: &[f32], noise: &[f32], actions: &mut [f32]) {
+        self.calls += 1;
         self.acts += (obs.len() / self.obs_dim()) as u64;
         self.inner.act(obs, noise, actions)
     }
     fn q_pair(&mut self, obs: &[f32], a: &[f32], b: &[f32], q_a: &mut [f32], q_b: &mut [f32]) {
+        self.calls += 1;
         self.qs += 2 * q_a.len() as u64;
         self.inner.q_pair(obs, a, b, q_a, q_b)
     }
     fn predict_next(&mut self, obs: &[f32], actions: &[f32], next_obs: &mut [f32]) {
+        self.calls += 1;
         self.predicts += (obs.len() / self.obs_dim()) as u64;
         self.inner.predict_next(obs, actions, next_obs)
     }
@@ -71,6 +75,7 @@ pub fn run(lengths: &[usize], batches: &[usize], per_case: Duration) -> Vec<Benc
                 acts: 0,
                 qs: 0,
                 predicts: 0,
+                calls: 0,
             };
             let mut rngs: Vec<ChaCha8Rng> =
                 (0..batch as u64).map(ChaCha8Rng::seed_from_u64).collect();
@@ -157,6 +162,136 @@ pub fn matmul_gflops(per_case: Duration) -> f64 {
         runs += 1;
     }
     (2 * n * n * n) as f64 * runs as f64 / start.elapsed().as_secs_f64() / 1e9
+}
+
+/// Replan on a shipped bundle, on its own domain's trajectories: one session in-process, the
+/// simulated robot driven by the served action, as `prac serve` replans a lone session.
+pub struct BundleReplan {
+    pub bundle: String,
+    pub epsilon_coef: f64,
+    pub steps: u64,
+    pub micros_per_step: f64,
+    pub old_actions_tested_per_step: f64,
+    pub plan_length: f64,
+    pub network_calls_per_step: f64,
+    pub mflop_per_step: f64,
+    pub gflops: f64,
+}
+
+/// Plays the bundle's domain for `per_case` (episodes restart from the next seed), timing only
+/// Replan.
+pub fn bundle_replan(
+    path: &std::path::Path,
+    epsilon_coef: f64,
+    per_case: Duration,
+) -> anyhow::Result<BundleReplan> {
+    use crate::proto::session_options::Tolerance;
+    use crate::serve::session::SessionSettings;
+    let policy = Arc::new(crate::bundle::load(path)?);
+    let domain = policy.manifest.domain.clone();
+    let mut env = crate::domains::make(&domain).ok_or_else(|| {
+        anyhow::anyhow!("the bundle is for domain {domain:?}, which this build does not have")
+    })?;
+    let options = crate::proto::SessionOptions {
+        tolerance: Some(Tolerance::EpsilonCoef(epsilon_coef)),
+        ..Default::default()
+    };
+    let config = SessionSettings::resolve(Some(&options), &policy, crate::plan::MAX_CHUNK)
+        .map_err(|e| anyhow::anyhow!(e))?
+        .replan;
+    let (actor_flops, critic_flops, model_flops) = policy.flops();
+    let n_critics = policy.critics.len() as u64;
+    let spec = env.spec().clone();
+    let (od, ad) = (spec.obs_dim, spec.act_dim);
+    let mut nets = Counting {
+        inner: Evaluator::with_capacity(policy.clone(), 1),
+        acts: 0,
+        qs: 0,
+        predicts: 0,
+        calls: 0,
+    };
+    let mut scratch = ReplanScratch::new(od, ad);
+    let mut commitment = crate::plan::Commitment::with_capacity(od, ad, config.max_horizon + 1);
+    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    let (mut obs, mut scaled) = (vec![0.0; od], vec![0.0; ad]);
+    let (mut seed, mut t) = (0u64, 0u64);
+    env.reset(seed, &mut obs)?;
+    let (mut replanning, mut steps, mut tested, mut plan_entries) = (Duration::ZERO, 0u64, 0, 0);
+    let wall = Instant::now();
+    while wall.elapsed() < per_case || steps < 100 {
+        let (old, new) = commitment.next_replan(t == 0);
+        let start = Instant::now();
+        let outcome = crate::plan::replan(
+            &mut nets,
+            &config,
+            &obs,
+            t,
+            old,
+            new,
+            &mut scratch,
+            &mut rng,
+        )?;
+        replanning += start.elapsed();
+        commitment.commit();
+        steps += 1;
+        tested += outcome.kept + usize::from(outcome.broke_at.is_some());
+        plan_entries += commitment.plan().len();
+        crate::policy::unscale_action(
+            &spec.action_low,
+            &spec.action_high,
+            commitment.plan().action(0),
+            &mut scaled,
+        );
+        let transition = env.step(&scaled, &mut obs)?;
+        t += 1;
+        if transition.terminated || transition.truncated {
+            seed += 1;
+            env.reset(seed, &mut obs)?;
+            commitment.clear();
+            t = 0;
+        }
+    }
+    let flops =
+        nets.acts * actor_flops + nets.qs * critic_flops * n_critics + nets.predicts * model_flops;
+    let per_step = |v: f64| v / steps as f64;
+    Ok(BundleReplan {
+        bundle: policy.manifest.name.clone(),
+        epsilon_coef,
+        steps,
+        micros_per_step: per_step(replanning.as_secs_f64() * 1e6),
+        old_actions_tested_per_step: per_step(tested as f64),
+        plan_length: per_step(plan_entries as f64),
+        network_calls_per_step: per_step(nets.calls as f64),
+        mflop_per_step: per_step(flops as f64 / 1e6),
+        gflops: flops as f64 / replanning.as_secs_f64() / 1e9,
+    })
+}
+
+pub fn bundle_report(rows: &[BundleReplan], matmul: f64) -> String {
+    let mut out = format!(
+        "Replan on shipped bundles, one session in-process on its domain's trajectories\n\
+         machine matmul (512^3 sgemm, matrixmultiply, 1 thread): {matmul:.1} GFLOP/s\n\
+         eps coefficient {coef}; tested: old actions tested per step; calls: network calls per step;\n\
+         at sgemm: microseconds per step if every FLOP ran at the sgemm rate\n\
+         bundle      steps  us/step  tested  plan  calls  MFLOP/step  GFLOP/s  of sgemm  at sgemm\n",
+        coef = rows.first().map_or(0.0, |r| r.epsilon_coef)
+    );
+    for r in rows {
+        out.push_str(&format!(
+            "{:<10}  {:>5}  {:>7.1}  {:>6.2}  {:>4.1}  {:>5.1}  {:>10.2}  {:>7.1}  {:>7.0}%  {:>8.1}\n",
+            r.bundle,
+            r.steps,
+            r.micros_per_step,
+            r.old_actions_tested_per_step,
+            r.plan_length,
+            r.network_calls_per_step,
+            r.mflop_per_step,
+            r.gflops,
+            100.0 * r.gflops / matmul,
+            r.mflop_per_step * 1e3 / matmul,
+        ));
+    }
+    out
 }
 
 /// The MLP kernel alone: one Hopper-sized critic (18 inputs, [256, 256] ReLU, 1 output) over
