@@ -147,7 +147,10 @@ fn sweep_writes_sane_files_and_curves_draw() {
     let curves = sim(&[
         "curves",
         "--csv",
-        root().join("bundles/pendulum.train.csv").to_str().unwrap(),
+        root()
+            .join("runs/pendulum/pendulum.train.csv")
+            .to_str()
+            .unwrap(),
         "--normalize=-1237,-137",
         "--out",
         dir.path().to_str().unwrap(),
@@ -169,7 +172,7 @@ fn sweep_writes_sane_files_and_curves_draw() {
     );
 
     // A second seed of the same setting (a shifted copy) adds the mean across seeds.
-    let shipped = std::fs::read_to_string(root().join("bundles/pendulum.train.csv")).unwrap();
+    let shipped = std::fs::read_to_string(root().join("runs/pendulum/pendulum.train.csv")).unwrap();
     let mut lines = shipped.lines();
     let header = lines.next().unwrap();
     let ret = header.split(',').position(|h| h == "return").unwrap();
@@ -187,7 +190,7 @@ fn sweep_writes_sane_files_and_curves_draw() {
         "--csv",
         &format!(
             "{},{}",
-            root().join("bundles/pendulum.train.csv").display(),
+            root().join("runs/pendulum/pendulum.train.csv").display(),
             seed1.display()
         ),
         "--out",

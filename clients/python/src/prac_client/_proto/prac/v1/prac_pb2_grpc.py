@@ -95,7 +95,9 @@ class PracServicer:
         raise NotImplementedError('Method not implemented!')
 
     def Step(self, request, context):
-        """One observed state in, the action to execute now and the committed plan out.
+        """One observed state in, the action to execute now and the committed plan out. A session's
+        steps are applied in the order they reached the server: one overtaken by a step that arrived
+        after it is answered ABORTED and changes nothing.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
