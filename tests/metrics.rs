@@ -29,10 +29,13 @@ fn sample(text: &str, name: &str) -> f64 {
         .unwrap_or_else(|| panic!("no {name} in:\n{text}"))
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn metrics_count_steps_sessions_and_errors() {
-    let bundles = bundle_dir();
-    let server = Server::start(bundles.path(), &["--metrics-listen", "127.0.0.1:0"]);
+/// A serving server with metrics on a free port, and the metrics address.
+async fn with_metrics(bundles: &std::path::Path, args: &[&str]) -> (Server, String) {
+    let args: Vec<&str> = ["--metrics-listen", "127.0.0.1:0"]
+        .into_iter()
+        .chain(args.iter().copied())
+        .collect();
+    let server = Server::start(bundles, &args);
     let addr = server
         .preamble
         .iter()
@@ -40,6 +43,13 @@ async fn metrics_count_steps_sessions_and_errors() {
         .expect("the metrics address")
         .to_string();
     server.wait_serving().await;
+    (server, addr)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn metrics_count_steps_sessions_and_errors() {
+    let bundles = bundle_dir();
+    let (server, addr) = with_metrics(bundles.path(), &[]).await;
     let mut client = server.client().await;
     let mut ids = Vec::new();
     for _ in 0..2 {
@@ -116,17 +126,7 @@ async fn metrics_count_steps_sessions_and_errors() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_batch_window_sends_every_step_to_the_batch_workers() {
     let bundles = bundle_dir();
-    let server = Server::start(
-        bundles.path(),
-        &["--metrics-listen", "127.0.0.1:0", "--batch-window", "1ms"],
-    );
-    let addr = server
-        .preamble
-        .iter()
-        .find_map(|l| l.strip_prefix("metrics on "))
-        .expect("the metrics address")
-        .to_string();
-    server.wait_serving().await;
+    let (server, addr) = with_metrics(bundles.path(), &["--batch-window", "1ms"]).await;
     let mut client = server.client().await;
     let id = common::open_default_session(&mut client, "toy").await;
     for k in 0..3 {

@@ -210,36 +210,23 @@ pub fn bundle_replan(
         predicts: 0,
         calls: 0,
     };
-    let mut scratch = ReplanScratch::new(od, ad);
-    let mut commitment = crate::plan::Commitment::with_capacity(od, ad, config.max_horizon + 1);
-    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    let mut planner = crate::plan::Planner::new(config, od, ad, ChaCha8Rng::seed_from_u64(1));
     let (mut obs, mut scaled) = (vec![0.0; od], vec![0.0; ad]);
     let (mut seed, mut t) = (0u64, 0u64);
     env.reset(seed, &mut obs)?;
     let (mut replanning, mut steps, mut tested, mut plan_entries) = (Duration::ZERO, 0u64, 0, 0);
     let wall = Instant::now();
     while wall.elapsed() < per_case || steps < 100 {
-        let (old, new) = commitment.next_replan(t == 0);
         let start = Instant::now();
-        let outcome = crate::plan::replan(
-            &mut nets,
-            &config,
-            &obs,
-            t,
-            old,
-            new,
-            &mut scratch,
-            &mut rng,
-        )?;
+        let outcome = planner.replan(&mut nets, &obs, t)?;
         replanning += start.elapsed();
-        commitment.commit();
         steps += 1;
         tested += outcome.kept + usize::from(outcome.broke_at.is_some());
-        plan_entries += commitment.plan().len();
+        plan_entries += planner.plan().len();
         crate::policy::unscale_action(
             &spec.action_low,
             &spec.action_high,
-            commitment.plan().action(0),
+            planner.plan().action(0),
             &mut scaled,
         );
         let transition = env.step(&scaled, &mut obs)?;
@@ -247,7 +234,6 @@ pub fn bundle_replan(
         if transition.terminated || transition.truncated {
             seed += 1;
             env.reset(seed, &mut obs)?;
-            commitment.clear();
             t = 0;
         }
     }

@@ -8,7 +8,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use crate::domains;
-use crate::plan::{self, Commitment, ReplanConfig, ReplanScratch};
+use crate::plan::{Planner, ReplanConfig};
 use crate::policy::Evaluator;
 
 pub struct RenderRequest<'a> {
@@ -60,34 +60,22 @@ pub fn run(req: &RenderRequest<'_>) -> anyhow::Result<usize> {
         };
         let (od, ad) = (spec.obs_dim, spec.act_dim);
         let mut evaluator = Evaluator::new(policy.clone());
-        let mut scratch = ReplanScratch::new(od, ad);
-        let mut rng = ChaCha8Rng::seed_from_u64(req.seed);
-        let mut commitment = Commitment::with_capacity(od, ad, config.max_horizon + 1);
+        let mut planner = Planner::new(config, od, ad, ChaCha8Rng::seed_from_u64(req.seed));
         let mut action = vec![0.0; ad];
         for t in 0..=u64::from(req.steps) {
-            let (old, new) = commitment.next_replan(t == 0);
-            plan::replan(
-                &mut evaluator,
-                &config,
-                &obs,
-                t,
-                old,
-                new,
-                &mut scratch,
-                &mut rng,
-            )
-            .with_context(|| format!("replanning at step {t}"))?;
-            commitment.commit();
+            planner
+                .replan(&mut evaluator, &obs, t)
+                .with_context(|| format!("replanning at step {t}"))?;
             if t == u64::from(req.steps) {
                 break;
             }
-            policy.unscale_action(commitment.plan().action(0), &mut action);
+            policy.unscale_action(planner.plan().action(0), &mut action);
             let step = env.step(&action, &mut obs)?;
             if step.terminated || step.truncated {
                 bail!("the episode ended at step {}; ask for fewer --steps", t + 1);
             }
         }
-        let current = commitment.plan();
+        let current = planner.plan();
         let predicted: Vec<f32> = (0..current.len())
             .flat_map(|i| current.next_obs(i).to_vec())
             .collect();

@@ -140,22 +140,13 @@ impl Dense {
     unsafe fn forward_avx2(&self, inputs: &[f32], outputs: &mut [f32]) {
         let (out, inp) = (self.output_dim(), self.input_dim());
         let n = inputs.len() / inp;
-        for p in 0..out.div_ceil(PANEL) {
-            let tile = Tile {
-                panel: &self.packed[p * inp * PANEL..(p + 1) * inp * PANEL],
-                bias: &self.padded_bias[p * PANEL..(p + 1) * PANEL],
-                first: p * PANEL,
-                inp,
-                out,
-            };
-            let mut row = 0;
-            while row < n {
-                let rows = (n - row).min(6);
+        for tile in self.tiles() {
+            for row in (0..n).step_by(6) {
                 let (x, y) = (&inputs[row * inp..], &mut outputs[row * out..]);
                 // SAFETY: the CPU has AVX2 and FMA (this function's features).
                 unsafe {
-                    match rows {
-                        6 => tile.avx2::<6>(x, y),
+                    match n - row {
+                        6.. => tile.avx2::<6>(x, y),
                         5 => tile.avx2::<5>(x, y),
                         4 => tile.avx2::<4>(x, y),
                         3 => tile.avx2::<3>(x, y),
@@ -163,7 +154,6 @@ impl Dense {
                         _ => tile.avx2::<1>(x, y),
                     }
                 }
-                row += rows;
             }
         }
     }
@@ -174,22 +164,13 @@ impl Dense {
     unsafe fn forward_avx512(&self, inputs: &[f32], outputs: &mut [f32]) {
         let (out, inp) = (self.output_dim(), self.input_dim());
         let n = inputs.len() / inp;
-        for p in 0..out.div_ceil(PANEL) {
-            let tile = Tile {
-                panel: &self.packed[p * inp * PANEL..(p + 1) * inp * PANEL],
-                bias: &self.padded_bias[p * PANEL..(p + 1) * PANEL],
-                first: p * PANEL,
-                inp,
-                out,
-            };
-            let mut row = 0;
-            while row < n {
-                let rows = (n - row).min(12);
+        for tile in self.tiles() {
+            for row in (0..n).step_by(12) {
                 let (x, y) = (&inputs[row * inp..], &mut outputs[row * out..]);
                 // SAFETY: the CPU has AVX-512F (this function's feature).
                 unsafe {
-                    match rows {
-                        12 => tile.avx512::<12>(x, y),
+                    match n - row {
+                        12.. => tile.avx512::<12>(x, y),
                         11 => tile.avx512::<11>(x, y),
                         10 => tile.avx512::<10>(x, y),
                         9 => tile.avx512::<9>(x, y),
@@ -203,9 +184,21 @@ impl Dense {
                         _ => tile.avx512::<1>(x, y),
                     }
                 }
-                row += rows;
             }
         }
+    }
+
+    /// The panels of packed weights, each with where its outputs go.
+    #[cfg(target_arch = "x86_64")]
+    fn tiles(&self) -> impl Iterator<Item = Tile<'_>> {
+        let (out, inp) = (self.output_dim(), self.input_dim());
+        (0..out.div_ceil(PANEL)).map(move |p| Tile {
+            panel: &self.packed[p * inp * PANEL..(p + 1) * inp * PANEL],
+            bias: &self.padded_bias[p * PANEL..(p + 1) * PANEL],
+            first: p * PANEL,
+            inp,
+            out,
+        })
     }
 }
 

@@ -139,6 +139,67 @@ impl Commitment {
     }
 }
 
+/// One session's PrAC without a server: a commitment replanned at each observed state, with its
+/// settings, buffers and rng. Training-with-PrAC, `prac render` and `prac bench-replan` drive
+/// their robots with it; the server's sessions add what serving needs around a [`Commitment`].
+#[derive(Clone, Debug)]
+pub struct Planner<R> {
+    pub config: ReplanConfig,
+    commitment: Commitment,
+    scratch: ReplanScratch,
+    rng: R,
+}
+
+impl<R: Rng + Clone> Planner<R> {
+    pub fn new(config: ReplanConfig, obs_dim: usize, act_dim: usize, rng: R) -> Planner<R> {
+        Planner {
+            config,
+            commitment: Commitment::with_capacity(obs_dim, act_dim, config.max_horizon + 1),
+            scratch: ReplanScratch::new(obs_dim, act_dim),
+            rng,
+        }
+    }
+
+    /// Replans at `state`, observed at `step` of the episode (0 starts a new one), and commits
+    /// the new plan; on an error the commitment stays as it was. The action to execute is the
+    /// plan's first.
+    pub fn replan<N: Networks>(
+        &mut self,
+        nets: &mut N,
+        state: &[f32],
+        step: u64,
+    ) -> Result<ReplanOutcome, NonFinite> {
+        let (old, new) = self.commitment.next_replan(step == 0);
+        let outcome = replan(
+            nets,
+            &self.config,
+            state,
+            step,
+            old,
+            new,
+            &mut self.scratch,
+            &mut self.rng,
+        )?;
+        self.commitment.commit();
+        Ok(outcome)
+    }
+
+    /// The committed plan: action(0) is the one to execute now.
+    pub fn plan(&self) -> &Plan {
+        self.commitment.plan()
+    }
+
+    /// The forecast f_t of the action executed at `step` (see [`Commitment::forecast`]).
+    pub fn forecast(&self, step: u64) -> u64 {
+        self.commitment.forecast(step)
+    }
+
+    /// Forgets the commitment.
+    pub fn clear(&mut self) {
+        self.commitment.clear();
+    }
+}
+
 /// A borrowed run of plan entries (e.g. what is left of the last plan after its first action).
 #[derive(Clone, Copy, Debug)]
 pub struct PlanView<'a> {

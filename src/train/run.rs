@@ -24,7 +24,7 @@ use crate::bundle::{
 };
 use crate::domains::{self, Env, EnvSpec};
 use crate::nn::Activation;
-use crate::plan::{self, Commitment, Growth, Networks, ReplanConfig, ReplanScratch};
+use crate::plan::{self, Growth, Networks, Planner, ReplanConfig};
 use crate::policy::{Evaluator, Policy};
 
 /// Checkpoints written before the option existed had no buffer; runs save it by default.
@@ -184,14 +184,6 @@ pub fn snapshot(sac: &Sac, model: &ModelTrainer, spec: &EnvSpec, steps: u64, see
     }
 }
 
-/// The PrAC agent while training: the committed plan and its rng.
-struct PlanAgent {
-    commitment: Commitment,
-    scratch: ReplanScratch,
-    rng: ChaCha8Rng,
-    epsilon: f32,
-}
-
 pub struct Trainer {
     pub options: TrainOptions,
     spec: EnvSpec,
@@ -204,7 +196,8 @@ pub struct Trainer {
     rng: ChaCha8Rng,
     pub progress: Progress,
     policy: Arc<Policy>,
-    agent: Option<PlanAgent>,
+    /// Training-with-PrAC: the agent acts from its committed plan.
+    agent: Option<Planner<ChaCha8Rng>>,
     /// Transitions restored from the checkpoint's replay buffer on resume.
     pub restored_transitions: Option<usize>,
 }
@@ -308,11 +301,16 @@ impl Trainer {
             options.seed ^ progress.step.wrapping_mul(0x9e37_79b9_7f4a_7c15),
         );
         let policy = Arc::new(snapshot(&sac, &model, &spec, progress.step, options.seed));
-        let agent = (options.epsilon_coef > 0.0).then(|| PlanAgent {
-            commitment: Commitment::with_capacity(od, ad, options.max_horizon + 1),
-            scratch: ReplanScratch::new(od, ad),
-            rng: ChaCha8Rng::seed_from_u64(options.seed.wrapping_add(progress.step) ^ 0x91a7),
-            epsilon: 0.0,
+        // eps is set from the value scale once learning starts.
+        let agent = (options.epsilon_coef > 0.0).then(|| {
+            let config = ReplanConfig {
+                epsilon: 0.0,
+                growth: Growth::default(),
+                max_horizon: options.max_horizon,
+                sampled: true,
+            };
+            let rng = ChaCha8Rng::seed_from_u64(options.seed.wrapping_add(progress.step) ^ 0x91a7);
+            Planner::new(config, od, ad, rng)
         });
         let restored_transitions = buffer.as_ref().map(ReplayBuffer::len);
         Ok(Trainer {
@@ -379,29 +377,11 @@ impl Trainer {
                     .iter_mut()
                     .for_each(|a| *a = self.rng.random_range(-1.0..=1.0));
             } else if let Some(agent) = &mut self.agent {
-                let config = ReplanConfig {
-                    epsilon: agent.epsilon,
-                    growth: Growth::default(),
-                    max_horizon: self.options.max_horizon,
-                    sampled: true,
-                };
-                let (old, new) = agent.commitment.next_replan(t == 0);
-                let outcome = plan::replan(
-                    &mut evaluator,
-                    &config,
-                    &obs,
-                    t,
-                    old,
-                    new,
-                    &mut agent.scratch,
-                    &mut agent.rng,
-                );
-                match outcome {
-                    Ok(_) => agent.commitment.commit(),
-                    Err(e) => bail!("replan failed at step {}: {e}", self.progress.step),
+                if let Err(e) = agent.replan(&mut evaluator, &obs, t) {
+                    bail!("replan failed at step {}: {e}", self.progress.step);
                 }
-                action.copy_from_slice(agent.commitment.plan().action(0));
-                f_t = agent.commitment.forecast(t);
+                action.copy_from_slice(agent.plan().action(0));
+                f_t = agent.forecast(t);
             } else {
                 noise
                     .iter_mut()
@@ -456,7 +436,7 @@ impl Trainer {
             if transition.terminated || transition.truncated {
                 let forecast = forecast_sum / t as f64;
                 let l = &self.progress.last_losses;
-                let epsilon = self.agent.as_ref().map_or(0.0, |a| a.epsilon);
+                let epsilon = self.agent.as_ref().map_or(0.0, |a| a.config.epsilon);
                 writeln!(
                     csv,
                     "{},{},{ret},{disc},{t},{forecast},{epsilon},{},{},{},{}",
@@ -534,8 +514,8 @@ impl Trainer {
                 f64::from(q[0]) - v_rand_measured.unwrap_or(0.0)
             }
         };
-        agent.epsilon = (coef * range.max(0.0)) as f32;
-        agent.commitment.clear();
+        agent.config.epsilon = (coef * range.max(0.0)) as f32;
+        agent.clear();
     }
 
     fn refresh_policy(&mut self, evaluator: &mut Evaluator) {
