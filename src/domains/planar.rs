@@ -251,6 +251,8 @@ pub struct Planar {
     over: bool,
     /// Joint positions (normalised) and speeds (x 0.1), PyBullet's `j`.
     joint_state: Vec<f32>,
+    /// The clipped action, reused so that a step allocates nothing.
+    action: Vec<f32>,
 }
 
 impl Planar {
@@ -293,6 +295,7 @@ impl Planar {
             steps: 0,
             over: true,
             joint_state: vec![0.0; 2 * n],
+            action: vec![0.0; n],
         };
         env.build(&vec![0.0; n]);
         env.over = true;
@@ -539,9 +542,14 @@ impl Env for Planar {
 
     fn step(&mut self, action: &[f32], obs: &mut [f32]) -> Result<Transition, EnvError> {
         check_obs_len(&self.spec, obs)?;
-        let mut a = vec![0.0f32; self.spec.act_dim];
-        clip_action(&self.spec, action, &mut a)?;
+        let mut a = std::mem::take(&mut self.action);
+        let clipped = clip_action(&self.spec, action, &mut a);
+        if let Err(e) = clipped {
+            self.action = a;
+            return Err(e);
+        }
         if self.over {
+            self.action = a;
             return Err(EnvError::EpisodeOver);
         }
         for _ in 0..SUBSTEPS {
@@ -562,6 +570,7 @@ impl Env for Planar {
         self.potential = self.potential();
         let progress = self.potential - old_potential;
         let reward = alive + progress + effort_costs(&a, &self.joint_state, 1.0);
+        self.action = a;
         self.steps += 1;
         let terminated = ends && alive < 0.0;
         let truncated = !terminated && self.steps >= self.spec.episode_len;
