@@ -1,6 +1,6 @@
 //! Prometheus metrics of `prac serve`, served over HTTP at `--metrics-listen ADDR` `/metrics`.
 
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
 use axum::Router;
@@ -36,6 +36,10 @@ pub struct Metrics {
     errors: Family<Labels, Counter>,
     reloads: Family<Labels, Counter>,
     replanned: Family<Labels, Counter>,
+    /// The two `replanned` counters, each taken from the family at its first step, so that
+    /// counting a step allocates nothing after.
+    replanned_by_handler: OnceLock<Counter>,
+    replanned_by_batch_worker: OnceLock<Counter>,
 }
 
 /// Where a step was replanned.
@@ -63,6 +67,8 @@ impl Default for Metrics {
             errors: Family::default(),
             reloads: Family::default(),
             replanned: Family::default(),
+            replanned_by_handler: OnceLock::new(),
+            replanned_by_batch_worker: OnceLock::new(),
         };
         let mut m = m;
         let r = &mut m.registry;
@@ -135,11 +141,16 @@ impl Metrics {
     }
 
     pub fn replanned(&self, by: ReplannedBy) {
-        let by = match by {
-            ReplannedBy::Handler => "handler",
-            ReplannedBy::BatchWorker => "batch_worker",
+        let (counter, label) = match by {
+            ReplannedBy::Handler => (&self.replanned_by_handler, "handler"),
+            ReplannedBy::BatchWorker => (&self.replanned_by_batch_worker, "batch_worker"),
         };
-        self.replanned.get_or_create(&vec![("by", by.into())]).inc();
+        counter
+            .get_or_init(|| {
+                let labels = vec![("by", label.to_string())];
+                self.replanned.get_or_create(&labels).clone()
+            })
+            .inc();
     }
 
     pub fn error(&self, status: &tonic::Status) {
