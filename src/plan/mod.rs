@@ -5,9 +5,14 @@
 //!
 //! Actions inside a plan are in the policy's squashed space [-1, 1]^act_dim, which is what the
 //! critics and the model take; the server maps them to the action bounds only when answering.
+//!
+//! [`reference::reference_replan`] is Algorithm 2 line by line, the version to read next to the
+//! paper; [`replan_batch`] is the fast one and must match it bit for bit.
 
 use rand::Rng;
 use rand_distr::StandardNormal;
+
+pub mod reference;
 
 /// The three networks Replan needs, over batches of states stored as rows (n rows of obs_dim
 /// values, etc.). Implementations own their scratch buffers (hence `&mut self`), so that a step
@@ -170,16 +175,15 @@ impl<R: Rng + Clone> Planner<R> {
         step: u64,
     ) -> Result<ReplanOutcome, NonFinite> {
         let (old, new) = self.commitment.next_replan(step == 0);
-        let outcome = replan(
-            nets,
-            &self.config,
+        let job = ReplanJob {
+            config: self.config,
             state,
             step,
             old,
             new,
-            &mut self.scratch,
-            &mut self.rng,
-        )?;
+            rng: &mut self.rng,
+        };
+        let outcome = replan(nets, job, &mut self.scratch)?;
         self.commitment.commit();
         Ok(outcome)
     }
@@ -418,32 +422,20 @@ fn all_finite(values: &[f32]) -> bool {
     values.iter().all(|v| v.is_finite())
 }
 
-/// Algorithm 2 for one session: checks the old plan action by action from the observed `state`,
+/// Algorithm 2 for one session: checks the old plan action by action from the observed state,
 /// keeping actions while `Q(s, a) + eps >= Q(s, pi(s))` and rolling the model forward over them,
-/// then extends the plan with policy actions decided at `step`. Writes the new plan into `new`;
-/// reads nothing but its arguments, so the same inputs and rng state give the same plan.
+/// then extends the plan with policy actions decided at the job's step. Writes the new plan into
+/// `job.new`; reads nothing but its arguments, so the same inputs and rng state give the same
+/// plan. [`reference::reference_replan`] is the same algorithm written as the paper writes it.
 ///
 /// The old plan is checked up to `max_horizon` actions; the new plan never exceeds `max_horizon`
-/// and is never empty. A non-finite network output is an error; `new` is then unusable.
-#[allow(clippy::too_many_arguments)]
+/// and is never empty. A non-finite network output is an error; `job.new` is then unusable.
 pub fn replan<N: Networks, R: Rng + Clone>(
     nets: &mut N,
-    config: &ReplanConfig,
-    state: &[f32],
-    step: u64,
-    old: PlanView<'_>,
-    new: &mut Plan,
+    job: ReplanJob<'_, R>,
     scratch: &mut ReplanScratch,
-    rng: &mut R,
 ) -> Result<ReplanOutcome, NonFinite> {
-    let mut jobs = [ReplanJob {
-        config: *config,
-        state,
-        step,
-        old,
-        new,
-        rng,
-    }];
+    let mut jobs = [job];
     let mut results = [Ok(ReplanOutcome {
         kept: 0,
         broke_at: None,

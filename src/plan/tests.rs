@@ -119,13 +119,15 @@ impl Episode {
         };
         let outcome = replan(
             &mut self.nets,
-            &self.config,
-            &self.obs,
-            self.t,
-            old,
-            &mut self.spare,
+            ReplanJob {
+                config: self.config,
+                state: &self.obs,
+                step: self.t,
+                old,
+                new: &mut self.spare,
+                rng: &mut self.rng,
+            },
             &mut self.scratch,
-            &mut self.rng,
         )
         .unwrap();
         std::mem::swap(&mut self.plan, &mut self.spare);
@@ -257,13 +259,15 @@ fn a_planted_bad_action_breaks_exactly_at_its_index() {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let outcome = replan(
             &mut nets,
-            &config,
-            &state,
-            5,
-            planted.tail(0),
-            &mut new,
+            ReplanJob {
+                config,
+                state: &state,
+                step: 5,
+                old: planted.tail(0),
+                new: &mut new,
+                rng: &mut rng,
+            },
             &mut scratch,
-            &mut rng,
         )
         .unwrap();
         assert_eq!(outcome.broke_at, Some(bad));
@@ -345,13 +349,15 @@ fn an_old_plan_longer_than_the_cap_is_truncated() {
     let mut new = Plan::with_capacity(OBS, ACT, 12);
     let outcome = replan(
         &mut nets,
-        &config,
-        &[0.0, 0.0],
-        1,
-        old.tail(0),
-        &mut new,
+        ReplanJob {
+            config,
+            state: &[0.0, 0.0],
+            step: 1,
+            old: old.tail(0),
+            new: &mut new,
+            rng: &mut ChaCha8Rng::seed_from_u64(0),
+        },
         &mut ReplanScratch::new(OBS, ACT),
-        &mut ChaCha8Rng::seed_from_u64(0),
     )
     .unwrap();
     assert_eq!((outcome.kept, outcome.appended, new.len()), (5, 0, 5));
@@ -367,13 +373,15 @@ fn a_non_finite_model_is_an_error_not_a_plan() {
     let mut new = Plan::with_capacity(OBS, ACT, 4);
     let err = replan(
         &mut nets,
-        &ReplanConfig::default(),
-        &[0.0, 0.0],
-        0,
-        PlanView::empty(),
-        &mut new,
+        ReplanJob {
+            config: ReplanConfig::default(),
+            state: &[0.0, 0.0],
+            step: 0,
+            old: PlanView::empty(),
+            new: &mut new,
+            rng: &mut ChaCha8Rng::seed_from_u64(0),
+        },
         &mut ReplanScratch::new(OBS, ACT),
-        &mut ChaCha8Rng::seed_from_u64(0),
     )
     .unwrap_err();
     assert_eq!(
@@ -433,13 +441,15 @@ fn a_batch_gives_each_session_what_it_gets_alone() {
             let mut rng = ChaCha8Rng::seed_from_u64(i as u64);
             let r = replan(
                 &mut nets,
-                &configs[i],
-                &states[i],
-                9,
-                olds[i].tail(0),
-                &mut new,
+                ReplanJob {
+                    config: configs[i],
+                    state: &states[i],
+                    step: 9,
+                    old: olds[i].tail(0),
+                    new: &mut new,
+                    rng: &mut rng,
+                },
                 &mut ReplanScratch::new(OBS, ACT),
-                &mut rng,
             );
             (r, new)
         })
@@ -480,80 +490,6 @@ fn a_batch_gives_each_session_what_it_gets_alone() {
     assert!(saw_break);
 }
 
-/// Algorithm 2 written the plain way, one action and one network call at a time: the reference
-/// the chunked, batched implementation must match exactly (plans, outcomes and rng draws).
-fn reference_replan(
-    nets: &mut ClosedForm,
-    config: &ReplanConfig,
-    state: &[f32],
-    step: u64,
-    old: PlanView<'_>,
-    new: &mut Plan,
-    rng: &mut ChaCha8Rng,
-) -> Result<ReplanOutcome, NonFinite> {
-    let err = |what, index| Err(NonFinite { what, index });
-    let draw = |rng: &mut ChaCha8Rng| -> f32 {
-        if config.sampled {
-            rng.sample(StandardNormal)
-        } else {
-            0.0
-        }
-    };
-    new.clear();
-    let mut s = state.to_vec();
-    let mut next = vec![0.0; OBS];
-    let mut pi = [0.0f32; ACT];
-    let mut broke_at = None;
-    for j in 0..old.len().min(config.max_horizon) {
-        let z = [draw(rng)];
-        nets.act(&s, &z, &mut pi);
-        if !pi[0].is_finite() {
-            return err("actor", j);
-        }
-        let (mut q_pi, mut q_a) = ([0.0], [0.0]);
-        nets.q_pair(&s, &pi, old.action(j), &mut q_pi, &mut q_a);
-        if !q_pi[0].is_finite() || !q_a[0].is_finite() {
-            return err("critic", j);
-        }
-        if q_a[0] + config.epsilon < q_pi[0] {
-            broke_at = Some(j);
-            break;
-        }
-        nets.predict_next(&s, old.action(j), &mut next);
-        if !next.iter().all(|v| v.is_finite()) {
-            return err("model", j);
-        }
-        new.push(old.action(j), &next, old.decided_at(j));
-        s.copy_from_slice(&next);
-    }
-    let kept = new.len();
-    let wanted = match config.growth {
-        Growth::Grow(k) => k,
-        Growth::Fixed(n) => n.saturating_sub(kept),
-    }
-    .min(config.max_horizon - kept);
-    for m in 0..wanted {
-        if !(m == 0 && broke_at.is_some()) {
-            let z = [draw(rng)];
-            nets.act(&s, &z, &mut pi);
-            if !pi[0].is_finite() {
-                return err("actor", kept + m);
-            }
-        }
-        nets.predict_next(&s, &pi, &mut next);
-        if !next.iter().all(|v| v.is_finite()) {
-            return err("model", kept + m);
-        }
-        new.push(&pi, &next, step);
-        s.copy_from_slice(&next);
-    }
-    Ok(ReplanOutcome {
-        kept,
-        broke_at,
-        appended: wanted,
-    })
-}
-
 #[test]
 fn chunked_batched_replan_matches_the_plain_algorithm() {
     use rand::Rng;
@@ -591,26 +527,30 @@ fn chunked_batched_replan_matches_the_plain_algorithm() {
         }
         let mut expected = Plan::with_capacity(OBS, ACT, 64);
         let mut rng_a = ChaCha8Rng::seed_from_u64(case as u64);
-        let outcome = reference_replan(
+        let outcome = reference::reference_replan(
             &mut nets,
-            &config,
-            &state,
-            50,
-            old.tail(0),
-            &mut expected,
-            &mut rng_a,
+            ReplanJob {
+                config,
+                state: &state,
+                step: 50,
+                old: old.tail(0),
+                new: &mut expected,
+                rng: &mut rng_a,
+            },
         );
         let mut got = Plan::with_capacity(OBS, ACT, 64);
         let mut rng_b = ChaCha8Rng::seed_from_u64(case as u64);
         let result = replan(
             &mut nets,
-            &config,
-            &state,
-            50,
-            old.tail(0),
-            &mut got,
+            ReplanJob {
+                config,
+                state: &state,
+                step: 50,
+                old: old.tail(0),
+                new: &mut got,
+                rng: &mut rng_b,
+            },
             &mut ReplanScratch::new(OBS, ACT),
-            &mut rng_b,
         );
         assert_eq!(result, outcome, "case {case} {config:?}");
         if outcome.is_err() {

@@ -1,0 +1,246 @@
+//! What a policy is: sizes, action bounds, the networks' architecture, normalisation and
+//! provenance. A bundle stores it as JSON in its safetensors `__metadata__` under the key
+//! `manifest`; the policy and the bundle loader both read it, so it depends on neither.
+
+use serde::{Deserialize, Serialize};
+
+use crate::nn::Activation;
+
+pub const FORMAT_VERSION: u32 = 1;
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    pub format_version: u32,
+    /// Policy name (informational; the server serves a bundle under its file name).
+    pub name: String,
+    /// Domain the policy controls, e.g. "hopper".
+    pub domain: String,
+    pub obs_dim: usize,
+    pub act_dim: usize,
+    /// Action bounds; the networks act in [-1, 1] and the server maps to [low, high].
+    pub action_low: Vec<f32>,
+    pub action_high: Vec<f32>,
+    /// Discount of the critics' returns, in (0, 1).
+    pub gamma: f64,
+    pub actor: NetSpec,
+    pub critic: CriticSpec,
+    /// The dynamics model; absent in bundles made from agents trained elsewhere until
+    /// `prac fit-model` adds one. The server needs it to imagine plans.
+    #[serde(default)]
+    pub model: Option<ModelSpec>,
+    #[serde(default)]
+    pub q_aggregation: QAggregation,
+    /// Discounted start-state values, for eps coefficients; absent means absolute eps only.
+    #[serde(default)]
+    pub value_scale: Option<ValueScale>,
+    pub provenance: Provenance,
+}
+
+/// Hidden layer widths and their activation.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NetSpec {
+    pub hidden: Vec<usize>,
+    pub activation: Activation,
+}
+
+/// The dynamics model: hidden widths, activation and its input/output normalisation.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ModelSpec {
+    pub hidden: Vec<usize>,
+    pub activation: Activation,
+    pub normalization: Normalization,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CriticSpec {
+    /// Number of critics (SB3's n_critics; 2 for twin critics).
+    pub n_critics: usize,
+    pub hidden: Vec<usize>,
+    pub activation: Activation,
+}
+
+/// The dynamics model's normalisation: inputs are standardised with the obs and action
+/// statistics, the output is the standardised delta s' - s.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Normalization {
+    pub obs_mean: Vec<f32>,
+    pub obs_std: Vec<f32>,
+    pub action_mean: Vec<f32>,
+    pub action_std: Vec<f32>,
+    pub delta_mean: Vec<f32>,
+    pub delta_std: Vec<f32>,
+}
+
+impl Normalization {
+    /// No normalisation (zero means, unit stds).
+    pub fn identity(obs_dim: usize, act_dim: usize) -> Normalization {
+        Normalization {
+            obs_mean: vec![0.0; obs_dim],
+            obs_std: vec![1.0; obs_dim],
+            action_mean: vec![0.0; act_dim],
+            action_std: vec![1.0; act_dim],
+            delta_mean: vec![0.0; obs_dim],
+            delta_std: vec![1.0; obs_dim],
+        }
+    }
+}
+
+/// How the critics are combined into one Q.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum QAggregation {
+    #[default]
+    Min,
+    Mean,
+}
+
+impl QAggregation {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            QAggregation::Min => "min",
+            QAggregation::Mean => "mean",
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ValueScale {
+    /// V_pi(s0), deterministic policy, discounted with the bundle's gamma.
+    pub v_pi: f64,
+    /// V_rand(s0), uniform random actions, discounted.
+    pub v_rand: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Provenance {
+    /// What produced the weights, e.g. "prac train 0.1.0" or "stable-baselines3 2.3.0".
+    pub trainer: String,
+    /// Environment steps trained.
+    pub steps: u64,
+    pub seed: u64,
+    /// RFC 3339 date of creation.
+    pub date: String,
+}
+
+impl Manifest {
+    /// Checks everything the tensors do not: returns the offending field and why.
+    pub fn validate(&self) -> Result<(), (String, String)> {
+        let fail = |field: &str, why: String| Err((field.to_string(), why));
+        if self.format_version != FORMAT_VERSION {
+            return fail(
+                "format_version",
+                format!(
+                    "is {}, this prac reads version {FORMAT_VERSION}",
+                    self.format_version
+                ),
+            );
+        }
+        if self.name.is_empty() {
+            return fail("name", "is empty".into());
+        }
+        if self.obs_dim == 0 {
+            return fail("obs_dim", "is 0".into());
+        }
+        if self.act_dim == 0 {
+            return fail("act_dim", "is 0".into());
+        }
+        for (field, values) in [
+            ("action_low", &self.action_low),
+            ("action_high", &self.action_high),
+        ] {
+            check_vector(field, values, self.act_dim)?;
+        }
+        for (i, (lo, hi)) in self.action_low.iter().zip(&self.action_high).enumerate() {
+            if lo >= hi {
+                return fail(
+                    &format!("action_low[{i}]"),
+                    format!("{lo} is not below action_high[{i}] = {hi}"),
+                );
+            }
+            // The server maps [-1, 1] onto [low, high] through high - low.
+            if !(hi - lo).is_finite() {
+                return fail(
+                    &format!("action_high[{i}]"),
+                    format!(
+                        "the range [{lo}, {hi}] is wider than f32 can hold, so actions would \
+                         not be finite; bound the action space"
+                    ),
+                );
+            }
+        }
+        if !(self.gamma > 0.0 && self.gamma < 1.0) {
+            return fail(
+                "gamma",
+                format!("is {}, expected a value in (0, 1)", self.gamma),
+            );
+        }
+        if self.critic.n_critics == 0 {
+            return fail("critic.n_critics", "is 0, expected at least 1".into());
+        }
+        let no_hidden = Vec::new();
+        let model_hidden = self.model.as_ref().map_or(&no_hidden, |m| &m.hidden);
+        for (field, hidden) in [
+            ("actor.hidden", &self.actor.hidden),
+            ("critic.hidden", &self.critic.hidden),
+            ("model.hidden", model_hidden),
+        ] {
+            if let Some(i) = hidden.iter().position(|&w| w == 0) {
+                return fail(&format!("{field}[{i}]"), "is 0, layers need a width".into());
+            }
+        }
+        let Some(model) = &self.model else {
+            return self.validate_value_scale();
+        };
+        let n = &model.normalization;
+        for (field, values, dim, is_std) in [
+            ("obs_mean", &n.obs_mean, self.obs_dim, false),
+            ("obs_std", &n.obs_std, self.obs_dim, true),
+            ("action_mean", &n.action_mean, self.act_dim, false),
+            ("action_std", &n.action_std, self.act_dim, true),
+            ("delta_mean", &n.delta_mean, self.obs_dim, false),
+            ("delta_std", &n.delta_std, self.obs_dim, true),
+        ] {
+            let field = format!("model.normalization.{field}");
+            check_vector(&field, values, dim)?;
+            if is_std && let Some(i) = values.iter().position(|&v| v <= 0.0) {
+                return fail(
+                    &format!("{field}[{i}]"),
+                    format!("is {}, a standard deviation must be > 0", values[i]),
+                );
+            }
+        }
+        self.validate_value_scale()
+    }
+
+    fn validate_value_scale(&self) -> Result<(), (String, String)> {
+        match self.value_scale {
+            Some(scale) if !scale.v_pi.is_finite() || !scale.v_rand.is_finite() => Err((
+                "value_scale".to_string(),
+                "holds a non-finite value".to_string(),
+            )),
+            // epsilon_coef multiplies V_pi - V_rand: it must stay a finite f32 tolerance.
+            Some(scale) if (scale.v_pi - scale.v_rand).abs() > f32::MAX as f64 => Err((
+                "value_scale".to_string(),
+                format!(
+                    "V_pi - V_rand = {} - {} is beyond f32's range; expected values in return \
+                     units",
+                    scale.v_pi, scale.v_rand
+                ),
+            )),
+            _ => Ok(()),
+        }
+    }
+}
+
+fn check_vector(field: &str, values: &[f32], dim: usize) -> Result<(), (String, String)> {
+    if values.len() != dim {
+        return Err((
+            field.to_string(),
+            format!("has {} values, expected {dim}", values.len()),
+        ));
+    }
+    if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+        return Err((format!("{field}[{i}]"), "is not finite".to_string()));
+    }
+    Ok(())
+}
