@@ -1,132 +1,88 @@
-//! A client-side session that survives losing its server: it keeps the last committed plan and,
-//! when the server no longer knows the session (a restart, a failover to another replica behind a
-//! proxy), opens a new one with `resume` and sends the step again. The episode goes on with the
-//! committed actions; no step is lost.
+//! The client side of prac, shared by the bundled clients (`prac-sim`, `prac-bench`,
+//! `prac-soak`) and the integration tests: connecting, waiting for a starting server's policies,
+//! a `prac serve` child of one's own ([`local`]) and a session that survives losing its server
+//! ([`ResumingSession`]).
 
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
+use anyhow::{Context, bail};
+use tonic::Code;
 use tonic::transport::Channel;
-use tonic::{Code, Request, Status};
 
-use crate::proto::{self, prac_client::PracClient};
+use crate::proto::{self, PolicyInfo, prac_client::PracClient};
 
-/// Metadata key a proxy can hash on to keep a client's calls on one replica (docs/operations.md).
-pub const AFFINITY_HEADER: &str = "x-prac-affinity";
+pub mod local;
+mod resuming;
 
-pub struct ResumingSession {
-    client: PracClient<Channel>,
-    policy: String,
-    options: Option<proto::SessionOptions>,
-    affinity: Option<String>,
-    session_id: String,
-    /// The plan held from the last answer: what a new server resumes from.
-    held: Option<proto::Plan>,
-    /// Sessions re-opened with `resume` so far.
-    pub resumes: u32,
-    /// How long to keep retrying while no server answers (UNAVAILABLE).
-    pub patience: Duration,
+pub use resuming::{AFFINITY_HEADER, ResumingSession};
+
+/// How long a client waits for a starting server to list its policies (it answers UNAVAILABLE
+/// until its bundles are loaded; the largest bundled one loads in well under a second).
+pub const POLICY_PATIENCE: Duration = Duration::from_secs(30);
+
+/// A plaintext channel to `addr` (`HOST:PORT` or a URL), with Nagle off: a step is one small
+/// request and its answer, which Nagle's algorithm would hold back.
+pub async fn channel(addr: &str) -> anyhow::Result<Channel> {
+    let target = if addr.starts_with("http") {
+        addr.to_string()
+    } else {
+        format!("http://{addr}")
+    };
+    Channel::from_shared(target)
+        .with_context(|| format!("'{addr}' is not an address"))?
+        .tcp_nodelay(true)
+        .connect()
+        .await
+        .with_context(|| format!("connecting to {addr}"))
 }
 
-fn lost(status: &Status) -> bool {
-    // NOT_FOUND / FAILED_PRECONDITION: the server does not know (or evicted) the session;
-    // UNAVAILABLE: no server answered.
-    matches!(
-        status.code(),
-        Code::NotFound | Code::FailedPrecondition | Code::Unavailable
-    )
+/// A client over [`channel`].
+pub async fn connect(addr: &str) -> anyhow::Result<PracClient<Channel>> {
+    Ok(PracClient::new(channel(addr).await?))
 }
 
-impl ResumingSession {
-    /// Opens a session; `affinity` (e.g. the controller's name) goes with every call as
-    /// `x-prac-affinity` metadata.
-    pub async fn open(
-        client: PracClient<Channel>,
-        policy: &str,
-        options: Option<proto::SessionOptions>,
-        affinity: Option<&str>,
-    ) -> Result<ResumingSession, Status> {
-        let mut session = ResumingSession {
-            client,
-            policy: policy.to_string(),
-            options,
-            affinity: affinity.map(str::to_string),
-            session_id: String::new(),
-            held: None,
-            resumes: 0,
-            patience: Duration::from_secs(10),
+/// The policy to use: `wanted`, else the only one served. Waits up to `patience` for a starting
+/// server to list its policies; a served list without the wanted one is an error at once.
+pub async fn choose_policy(
+    client: &mut PracClient<Channel>,
+    wanted: Option<&str>,
+    patience: Duration,
+) -> anyhow::Result<PolicyInfo> {
+    let deadline = Instant::now() + patience;
+    loop {
+        let listed = match client.list_policies(proto::ListPoliciesRequest {}).await {
+            Ok(listed) => listed.into_inner().policies,
+            Err(status) if status.code() == Code::Unavailable => Vec::new(),
+            Err(status) => bail!("ListPolicies: {}", status.message()),
         };
-        session.session_id = session.open_remote(None).await?;
-        Ok(session)
-    }
-
-    pub fn session_id(&self) -> &str {
-        &self.session_id
-    }
-
-    fn request<T>(&self, message: T) -> Result<Request<T>, Status> {
-        let mut request = Request::new(message);
-        if let Some(key) = &self.affinity {
-            let value = key
-                .parse()
-                .map_err(|_| Status::invalid_argument("the affinity key is not valid metadata"))?;
-            request.metadata_mut().insert(AFFINITY_HEADER, value);
-        }
-        Ok(request)
-    }
-
-    async fn open_remote(&mut self, resume: Option<proto::Plan>) -> Result<String, Status> {
-        let request = self.request(proto::OpenSessionRequest {
-            policy: self.policy.clone(),
-            options: self.options,
-            resume,
-        })?;
-        Ok(self
-            .client
-            .open_session(request)
-            .await?
-            .into_inner()
-            .session_id)
-    }
-
-    /// One step; if the session was lost, resumes it (with the held plan) and steps again.
-    pub async fn step(
-        &mut self,
-        observation: &[f32],
-        new_episode: bool,
-    ) -> Result<proto::StepResponse, Status> {
-        let give_up = tokio::time::Instant::now() + self.patience;
-        loop {
-            let request = self.request(proto::StepRequest {
-                session_id: self.session_id.clone(),
-                observation: observation.to_vec(),
-                new_episode,
-            })?;
-            match self.client.step(request).await {
-                Ok(response) => {
-                    let response = response.into_inner();
-                    self.held = Some(proto::Plan {
-                        session_id: String::new(),
-                        episode: response.episode,
-                        start_step: response.step,
-                        actions: response.forecast.clone(),
+        let names: Vec<&str> = listed.iter().map(|p| p.name.as_str()).collect();
+        match wanted {
+            _ if listed.is_empty() => {}
+            Some(name) => {
+                return listed
+                    .iter()
+                    .find(|p| p.name == name)
+                    .cloned()
+                    .with_context(|| {
+                        format!(
+                            "the server has no policy '{name}'; it serves: {}",
+                            names.join(", ")
+                        )
                     });
-                    return Ok(response);
-                }
-                Err(status) if lost(&status) && tokio::time::Instant::now() < give_up => {
-                    tracing::warn!(%status, "session lost; resuming it");
-                    match self.open_remote(self.held.clone()).await {
-                        Ok(id) => {
-                            self.session_id = id;
-                            self.resumes += 1;
-                        }
-                        Err(status) if lost(&status) => {
-                            tokio::time::sleep(Duration::from_millis(100)).await;
-                        }
-                        Err(status) => return Err(status),
-                    }
-                }
-                Err(status) => return Err(status),
             }
+            None if listed.len() == 1 => return Ok(listed[0].clone()),
+            None => bail!(
+                "the server serves {} policies; choose one with --policy: {}",
+                listed.len(),
+                names.join(", ")
+            ),
         }
+        if Instant::now() > deadline {
+            bail!(
+                "the server listed no policies within {} s",
+                patience.as_secs()
+            );
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
     }
 }

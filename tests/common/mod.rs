@@ -7,23 +7,15 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use prac::bundle;
-use prac::policy::{Policy, test_manifest};
 use prac::proto::prac_client::PracClient;
 use tonic::transport::Channel;
 use tonic_health::pb::HealthCheckRequest;
 use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::health_client::HealthClient;
 
-pub const OBS: usize = 3;
-pub const ACT: usize = 2;
-
-/// A small random policy: obs 3, act 2, actions in [-2, 2] x [0, 1].
-pub fn toy_policy(name: &str, seed: u64) -> Policy {
-    let mut manifest = test_manifest(name, "toy", OBS, ACT, &[32, 32], &[16, 16]);
-    manifest.action_low = vec![-2.0, 0.0];
-    manifest.action_high = vec![2.0, 1.0];
-    Policy::random(manifest, seed)
-}
+// Each test binary uses its own part of this module.
+#[allow(unused_imports)]
+pub use prac::testing::{TOY_ACT as ACT, TOY_OBS as OBS, toy_policy};
 
 /// A temporary bundle directory holding `toy.safetensors` (and whatever else a test adds).
 pub fn bundle_dir() -> tempfile::TempDir {
@@ -86,11 +78,7 @@ impl Server {
     }
 
     pub async fn channel(&self) -> Channel {
-        Channel::from_shared(self.url())
-            .unwrap()
-            .connect()
-            .await
-            .unwrap()
+        prac::client::channel(&self.addr).await.unwrap()
     }
 
     /// A TLS channel to a server whose certificate (PEM) names localhost.
@@ -109,7 +97,7 @@ impl Server {
     }
 
     pub async fn client(&self) -> PracClient<Channel> {
-        PracClient::connect(self.url()).await.unwrap()
+        prac::client::connect(&self.addr).await.unwrap()
     }
 
     pub async fn health(&self, service: &str) -> ServingStatus {

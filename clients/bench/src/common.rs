@@ -1,13 +1,10 @@
-//! What prac-bench and prac-soak share: their own local server and the client connection.
+//! What prac-bench and prac-soak share: their own local server and latency histograms.
 
 use std::path::Path;
 
-use prac::proto::prac_client::PracClient;
-use tonic::transport::Channel;
-
 /// A `prac serve` of its own on a random Hopper-sized bundle, with the folder it lives in.
 pub struct LocalServer {
-    pub server: prac::serve::local::LocalServer,
+    pub server: prac::client::local::LocalServer,
     _dir: tempfile::TempDir,
 }
 
@@ -16,21 +13,12 @@ impl LocalServer {
     /// `hopper-bench` policy with random weights.
     pub async fn start(prac_bin: Option<&Path>, args: &[String]) -> anyhow::Result<LocalServer> {
         let dir = tempfile::tempdir()?;
-        let policy = prac::policy::Policy::random(prac::policy::hopper_sized_manifest(), 7);
+        let policy = prac::testing::random_policy(prac::testing::hopper_sized_manifest(), 7);
         prac::bundle::save(&policy, &dir.path().join("hopper-bench.safetensors"))?;
-        let bin = prac::serve::local::prac_binary(prac_bin)?;
-        let server = prac::serve::local::LocalServer::start(&bin, dir.path(), args).await?;
+        let bin = prac::client::local::prac_binary(prac_bin)?;
+        let server = prac::client::local::LocalServer::start(&bin, dir.path(), args).await?;
         Ok(LocalServer { server, _dir: dir })
     }
-}
-
-/// A connection with Nagle off (one-step round trips).
-pub async fn connect(addr: &str) -> anyhow::Result<PracClient<Channel>> {
-    let channel = Channel::from_shared(format!("http://{addr}"))?
-        .tcp_nodelay(true)
-        .connect()
-        .await?;
-    Ok(PracClient::new(channel))
 }
 
 /// Step latencies in microseconds: 1 us to 60 s at 3 significant digits.

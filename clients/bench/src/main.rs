@@ -25,7 +25,8 @@ use tokio::sync::{Mutex, mpsc};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::transport::Channel;
 
-use common::{LocalServer, connect};
+use common::LocalServer;
+use prac::client::{POLICY_PATIENCE, choose_policy, connect};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize)]
 #[serde(rename_all = "lowercase")]
@@ -552,49 +553,6 @@ fn cpu_time(pid: u32) -> Option<Duration> {
     Some(Duration::from_millis(ticks * 10))
 }
 
-/// The policy to load: the one asked for, else the only one served (the local server serves
-/// hopper-bench).
-async fn choose_policy(
-    client: &mut PracClient<Channel>,
-    asked: Option<&str>,
-    local: bool,
-    addr: &str,
-) -> anyhow::Result<proto::PolicyInfo> {
-    let wanted = asked.or(local.then_some("hopper-bench"));
-    // A server answers UNAVAILABLE until its bundles are loaded: wait for them.
-    let deadline = Instant::now() + Duration::from_secs(20);
-    loop {
-        let listed = match client.list_policies(proto::ListPoliciesRequest {}).await {
-            Ok(listed) => listed.into_inner().policies,
-            Err(status) if status.code() == tonic::Code::Unavailable => Vec::new(),
-            Err(status) => bail!("ListPolicies at {addr}: {status}"),
-        };
-        let names: Vec<&str> = listed.iter().map(|p| p.name.as_str()).collect();
-        match wanted {
-            Some(name) => {
-                if let Some(p) = listed.iter().find(|p| p.name == name) {
-                    return Ok(p.clone());
-                }
-                if Instant::now() > deadline {
-                    bail!(
-                        "policy '{name}' is not served at {addr}; it serves: {}",
-                        names.join(", ")
-                    );
-                }
-            }
-            None if listed.len() == 1 => return Ok(listed[0].clone()),
-            None if !listed.is_empty() => bail!(
-                "{addr} serves {} policies; choose one with --policy: {}",
-                listed.len(),
-                names.join(", ")
-            ),
-            None if Instant::now() > deadline => bail!("{addr} serves no policy"),
-            None => {}
-        }
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
-}
-
 /// Writes observations as a safetensors file with an f32 `obs` [N, obs_dim].
 fn save_observations(
     path: &std::path::Path,
@@ -633,7 +591,14 @@ async fn run(args: Args) -> anyhow::Result<Report> {
         .server_pid
         .or(local.as_ref().and_then(|l| l.server.pid()));
     let mut client = connect(&addr).await?;
-    let info = choose_policy(&mut client, args.policy.as_deref(), local.is_some(), &addr).await?;
+    // The local server serves only hopper-bench.
+    let wanted = args
+        .policy
+        .as_deref()
+        .or(local.is_some().then_some("hopper-bench"));
+    let info = choose_policy(&mut client, wanted, POLICY_PATIENCE)
+        .await
+        .with_context(|| format!("choosing a policy at {addr}"))?;
     let policy = info.name.clone();
     let ours = prac::domains::make(&info.domain).is_some();
     let workload = match (args.workload, &args.observations) {

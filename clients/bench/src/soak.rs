@@ -25,7 +25,8 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::Code;
 use tonic::transport::Channel;
 
-use common::{LocalServer, connect};
+use common::LocalServer;
+use prac::client::{POLICY_PATIENCE, choose_policy, connect};
 
 /// Soak test for prac serve.
 #[derive(Parser, Debug)]
@@ -458,25 +459,7 @@ async fn run(args: Args) -> anyhow::Result<Report> {
         }
     };
     let mut client = connect(&addr).await.context("connecting")?;
-    // The server answers UNAVAILABLE until its bundles are loaded.
-    let waiting_since = Instant::now();
-    let listed = loop {
-        match client.list_policies(proto::ListPoliciesRequest {}).await {
-            Ok(listed) => break listed.into_inner().policies,
-            Err(status)
-                if status.code() == Code::Unavailable
-                    && waiting_since.elapsed() < Duration::from_secs(30) =>
-            {
-                tokio::time::sleep(Duration::from_millis(50)).await;
-            }
-            Err(status) => bail!("ListPolicies: {status}"),
-        }
-    };
-    let info = match &args.policy {
-        Some(name) => listed.into_iter().find(|p| &p.name == name),
-        None => listed.into_iter().next(),
-    }
-    .context("the server has no such policy")?;
+    let info = choose_policy(&mut client, args.policy.as_deref(), POLICY_PATIENCE).await?;
     let obs_dim = info.obs_dim as usize;
 
     let shared = Arc::new(Shared {

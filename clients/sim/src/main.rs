@@ -16,9 +16,9 @@ use play::Tol;
 /// A failure of a command against its own local server, with what that server logged.
 fn with_server_log(
     e: anyhow::Error,
-    local: Option<&prac::serve::local::LocalServer>,
+    local: Option<&prac::client::local::LocalServer>,
 ) -> anyhow::Error {
-    match local.map(prac::serve::local::LocalServer::recent_log) {
+    match local.map(prac::client::local::LocalServer::recent_log) {
         Some(log) if !log.is_empty() => anyhow::anyhow!("{e:#}\nthe local server logged:\n{log}"),
         _ => e,
     }
@@ -30,7 +30,7 @@ struct Cli {
     /// A running server (host:port); without it a local `prac serve` runs for the command.
     #[arg(long, global = true)]
     server: Option<String>,
-    /// Bundles for the local server [default: the repository's bundles/, as prac serve's].
+    /// Bundles for the local server [default: bundles/ in the working directory, as prac serve's].
     #[arg(long, global = true)]
     bundles: Option<PathBuf>,
     /// The `prac` binary for the local server [default: beside prac-sim].
@@ -139,12 +139,12 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
     let local = match &cli.server {
         Some(_) => None,
         None => {
-            let bin = prac::serve::local::prac_binary(cli.prac_bin.as_deref())?;
+            let bin = prac::client::local::prac_binary(cli.prac_bin.as_deref())?;
             let bundles = cli
                 .bundles
                 .clone()
-                .unwrap_or_else(prac::serve::config::default_bundle_dir);
-            Some(prac::serve::local::LocalServer::start(&bin, &bundles, &[]).await?)
+                .unwrap_or_else(|| PathBuf::from("bundles"));
+            Some(prac::client::local::LocalServer::start(&bin, &bundles, &[]).await?)
         }
     };
     let addr = cli
@@ -152,7 +152,7 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
         .clone()
         .or_else(|| local.as_ref().map(|l| l.addr.clone()))
         .unwrap_or_default();
-    let mut client = play::connect(&addr).await?;
+    let mut client = prac::client::connect(&addr).await?;
     let outcome = match &cli.command {
         Command::Play {
             policy,
@@ -165,9 +165,13 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
             json,
         } => {
             anyhow::ensure!(*episodes >= 1, "--episodes must be >= 1");
-            let info = play::policy_info(&mut client, policy)
-                .await
-                .map_err(|e| with_server_log(e, local.as_ref()))?;
+            let info = prac::client::choose_policy(
+                &mut client,
+                Some(policy),
+                prac::client::POLICY_PATIENCE,
+            )
+            .await
+            .map_err(|e| with_server_log(e, local.as_ref()))?;
             let tol = match (epsilon, epsilon_coef) {
                 (Some(e), _) => Tol::Absolute(*e),
                 (None, Some(c)) => Tol::Coef(*c),
@@ -245,9 +249,13 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
                 "--coefs must be >= 0"
             );
             anyhow::ensure!(*episodes >= 2, "--episodes must be >= 2");
-            let info = play::policy_info(&mut client, policy)
-                .await
-                .map_err(|e| with_server_log(e, local.as_ref()))?;
+            let info = prac::client::choose_policy(
+                &mut client,
+                Some(policy),
+                prac::client::POLICY_PATIENCE,
+            )
+            .await
+            .map_err(|e| with_server_log(e, local.as_ref()))?;
             let result = sweep::run(&client, &info, coefs, *episodes, *seed, !cli.quiet).await?;
             sweep::write(&result, out)?;
             print!("{}", std::fs::read_to_string(out.join("sweep.md"))?);

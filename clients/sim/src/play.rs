@@ -14,44 +14,6 @@ use tonic::transport::Channel;
 
 pub type Client = PracClient<Channel>;
 
-pub async fn connect(addr: &str) -> anyhow::Result<Client> {
-    let target = if addr.starts_with("http") {
-        addr.to_string()
-    } else {
-        format!("http://{addr}")
-    };
-    let channel = Channel::from_shared(target)?
-        .tcp_nodelay(true)
-        .connect()
-        .await
-        .with_context(|| format!("connecting to {addr}"))?;
-    Ok(PracClient::new(channel))
-}
-
-/// The policy's description, waiting up to 20 s for a starting server to load its bundles.
-pub async fn policy_info(client: &mut Client, name: &str) -> anyhow::Result<PolicyInfo> {
-    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(20);
-    loop {
-        if let Ok(listed) = client.list_policies(proto::ListPoliciesRequest {}).await {
-            let listed = listed.into_inner().policies;
-            if let Some(p) = listed.iter().find(|p| p.name == name) {
-                return Ok(p.clone());
-            }
-            if !listed.is_empty() {
-                let names: Vec<&str> = listed.iter().map(|p| p.name.as_str()).collect();
-                bail!(
-                    "the server has no policy '{name}'; it serves: {}",
-                    names.join(", ")
-                );
-            }
-        }
-        if std::time::Instant::now() > deadline {
-            bail!("the server listed no policies within 20 s");
-        }
-        tokio::time::sleep(std::time::Duration::from_millis(100)).await;
-    }
-}
-
 /// How eps is given to the server.
 #[derive(Clone, Copy, Debug)]
 pub enum Tol {
@@ -147,14 +109,15 @@ pub async fn play_episode(
         seed,
         ..EpisodeResult::default()
     };
-    let (mut discount, mut forecast_sum, mut replans) = (1.0, 0.0, 0u64);
+    let mut totals = prac::domains::EpisodeTotals::new(info.gamma);
+    let mut replans = 0u64;
     let mut committed_next: Option<Vec<f32>> = None;
     let mut snapshot = None;
     loop {
         tx.send(proto::StepRequest {
             session_id: session.clone(),
             observation: obs.clone(),
-            new_episode: result.steps == 0,
+            new_episode: totals.steps == 0,
         })
         .await
         .context("the step stream closed")?;
@@ -162,7 +125,7 @@ pub async fn play_episode(
             .message()
             .await
             .map_err(|s| {
-                anyhow::anyhow!("step {}: {} ({:?})", result.steps, s.message(), s.code())
+                anyhow::anyhow!("step {}: {} ({:?})", totals.steps, s.message(), s.code())
             })?
             .context("the server ended the step stream")?;
         let first = response
@@ -182,8 +145,7 @@ pub async fn play_episode(
             result.commitment_violations += 1;
         }
         committed_next = response.forecast.get(1).map(|p| p.action.clone());
-        forecast_sum += response.f_t as f64;
-        if snapshot_at == Some(result.steps) {
+        if snapshot_at == Some(totals.steps) {
             let predicted: Vec<f32> = response
                 .forecast
                 .iter()
@@ -192,16 +154,11 @@ pub async fn play_episode(
             snapshot = Some(Snapshot {
                 scene: env.scene(),
                 trace: env.trace(&predicted),
-                step: result.steps,
+                step: totals.steps,
             });
         }
         let step = env.step(&response.action, &mut obs)?;
-        result.ret += step.reward;
-        result.discounted += discount * step.reward;
-        discount *= info.gamma;
-        result.steps += 1;
-        if step.terminated || step.truncated {
-            result.terminated = step.terminated;
+        if totals.record(&step, response.f_t) {
             result.distance = prac::domains::forward_distance(start, &*env);
             break;
         }
@@ -212,8 +169,12 @@ pub async fn play_episode(
             session_id: session,
         })
         .await;
-    result.forecast = forecast_sum / result.steps as f64;
-    result.replans_per_step = replans as f64 / result.steps as f64;
+    result.steps = totals.steps;
+    result.ret = totals.ret;
+    result.discounted = totals.discounted;
+    result.terminated = totals.terminated;
+    result.forecast = totals.forecast();
+    result.replans_per_step = replans as f64 / totals.steps as f64;
     Ok((result, snapshot))
 }
 
