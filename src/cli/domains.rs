@@ -6,7 +6,8 @@ use std::time::{Duration, Instant};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::domains::{DOMAINS, make};
+use crate::domains::{DOMAINS, EpisodeTotals, make};
+use crate::train::eval::mean_std;
 
 pub fn table() -> String {
     let mut out = format!(
@@ -31,13 +32,6 @@ pub struct DomainBench {
     pub std_return: f64,
     pub mean_discounted: f64,
     pub std_discounted: f64,
-}
-
-fn mean_std(values: &[f64]) -> (f64, f64) {
-    let n = values.len() as f64;
-    let mean = values.iter().sum::<f64>() / n;
-    let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
-    (mean, var.sqrt())
 }
 
 /// Steps/s under uniform random actions on one thread (for `per_domain`), then the returns of
@@ -79,19 +73,15 @@ pub fn bench(
         let (mut returns, mut discounted) = (Vec::new(), Vec::new());
         for e in 0..episodes {
             env.reset(1_000_000 + e as u64, &mut obs)?;
-            let (mut total, mut disc, mut weight) = (0.0, 0.0, 1.0);
+            let mut totals = EpisodeTotals::new(gamma);
             loop {
                 random(&mut rng, &mut action);
-                let t = env.step(&action, &mut obs)?;
-                total += t.reward;
-                disc += weight * t.reward;
-                weight *= gamma;
-                if t.terminated || t.truncated {
+                if totals.record(&env.step(&action, &mut obs)?, 1) {
                     break;
                 }
             }
-            returns.push(total);
-            discounted.push(disc);
+            returns.push(totals.ret);
+            discounted.push(totals.discounted);
         }
         let (mean_return, std_return) = mean_std(&returns);
         let (mean_discounted, std_discounted) = mean_std(&discounted);

@@ -3,6 +3,7 @@
 //! (LunarLanderContinuous on rapier2d), the planar walkers `hopper`, `walker` and `cheetah`
 //! (rapier2d) and the 3D walkers `ant` and `humanoid` (rapier3d multibodies).
 
+mod episode;
 mod lander;
 mod pendulum;
 mod planar;
@@ -10,6 +11,7 @@ pub mod scene;
 mod spatial;
 mod walker_base;
 
+pub use episode::EpisodeTotals;
 pub use lander::Lander;
 pub use pendulum::Pendulum;
 pub use planar::Planar;

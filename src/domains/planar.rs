@@ -7,10 +7,10 @@ use rand_chacha::ChaCha8Rng;
 use rapier2d::prelude::*;
 
 use super::walker_base::{
-    self, CONTROL_PERIOD, DENSITY, GRAVITY, MORE, TARGET_X, bullet_drag, clip_observation,
-    effort_costs,
+    self, CONTROL_PERIOD, DENSITY, GRAVITY, MORE, TARGET_X, WalkerEpisode, bullet_drag,
+    clip_observation,
 };
-use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, clip_action, wrap_angle};
+use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, wrap_angle};
 
 const SUBSTEPS: usize = 4;
 const FLOOR_FRICTION: f32 = 0.64;
@@ -246,13 +246,9 @@ pub struct Planar {
     /// Per link, its capsules' colliders.
     colliders: Vec<Vec<ColliderHandle>>,
     initial_z: f32,
-    potential: f64,
-    steps: u32,
-    over: bool,
+    episode: WalkerEpisode,
     /// Joint positions (normalised) and speeds (x 0.1), PyBullet's `j`.
     joint_state: Vec<f32>,
-    /// The clipped action, reused so that a step allocates nothing.
-    action: Vec<f32>,
 }
 
 impl Planar {
@@ -283,6 +279,7 @@ impl Planar {
             control_period: 0.0165,
             engine: "rapier2d",
         };
+        let episode = WalkerEpisode::new(&spec, 1.0);
         let mut env = Planar {
             robot,
             spec,
@@ -291,14 +288,10 @@ impl Planar {
             bodies: Vec::new(),
             colliders: Vec::new(),
             initial_z: 0.0,
-            potential: 0.0,
-            steps: 0,
-            over: true,
+            episode,
             joint_state: vec![0.0; 2 * n],
-            action: vec![0.0; n],
         };
         env.build(&vec![0.0; n]);
-        env.over = true;
         env
     }
 
@@ -533,25 +526,14 @@ impl Env for Planar {
             .collect();
         self.build(&angles);
         self.initial_z = self.torso().translation().y;
-        self.potential = self.potential();
-        self.steps = 0;
-        self.over = false;
+        self.episode.start(self.potential());
         self.observe(obs);
         Ok(())
     }
 
     fn step(&mut self, action: &[f32], obs: &mut [f32]) -> Result<Transition, EnvError> {
         check_obs_len(&self.spec, obs)?;
-        let mut a = std::mem::take(&mut self.action);
-        let clipped = clip_action(&self.spec, action, &mut a);
-        if let Err(e) = clipped {
-            self.action = a;
-            return Err(e);
-        }
-        if self.over {
-            self.action = a;
-            return Err(EnvError::EpisodeOver);
-        }
+        let a = self.episode.begin_step(&self.spec, action)?;
         for _ in 0..SUBSTEPS {
             self.apply_forces(&a);
             self.world.step();
@@ -566,20 +548,10 @@ impl Env for Planar {
             ),
         };
         let alive = if alive { 1.0 } else { -1.0 };
-        let old_potential = self.potential;
-        self.potential = self.potential();
-        let progress = self.potential - old_potential;
-        let reward = alive + progress + effort_costs(&a, &self.joint_state, 1.0);
-        self.action = a;
-        self.steps += 1;
-        let terminated = ends && alive < 0.0;
-        let truncated = !terminated && self.steps >= self.spec.episode_len;
-        self.over = terminated || truncated;
-        Ok(Transition {
-            reward,
-            terminated,
-            truncated,
-        })
+        let potential = self.potential();
+        Ok(self
+            .episode
+            .finish_step(a, alive, ends, potential, &self.joint_state))
     }
 }
 

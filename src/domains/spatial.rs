@@ -13,10 +13,10 @@ use rapier3d::prelude::*;
 
 use super::scene::{Part, Scene, Shape};
 use super::walker_base::{
-    self, CONTROL_PERIOD, DENSITY, GRAVITY, MORE, TARGET_X, bullet_drag, clip_observation,
-    effort_costs,
+    self, CONTROL_PERIOD, DENSITY, GRAVITY, MORE, TARGET_X, WalkerEpisode, bullet_drag,
+    clip_observation,
 };
-use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, clip_action, wrap_angle};
+use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, wrap_angle};
 
 /// PyBullet's stadium floor friction (0.8), multiplied by the geom's as Bullet combines them.
 const FLOOR_FRICTION: f32 = 0.8;
@@ -371,12 +371,9 @@ pub struct Spatial {
     /// Per link, its colliders.
     colliders: Vec<Vec<ColliderHandle>>,
     initial_z: f32,
-    potential: f64,
-    steps: u32,
-    over: bool,
+    episode: WalkerEpisode,
     /// Joint positions (normalised) and speeds (x 0.1), PyBullet's `j`.
     joint_state: Vec<f32>,
-    action: Vec<f32>,
     /// btMultiBody's drag on the links; off only for the free-floating momentum test.
     drag: bool,
 }
@@ -405,6 +402,7 @@ impl Spatial {
             control_period: f64::from(CONTROL_PERIOD),
             engine: "rapier3d",
         };
+        let episode = WalkerEpisode::new(&spec, robot.cost_scale);
         let mut env = Spatial {
             robot,
             spec,
@@ -413,11 +411,8 @@ impl Spatial {
             bodies: Vec::new(),
             colliders: Vec::new(),
             initial_z: 0.0,
-            potential: 0.0,
-            steps: 0,
-            over: true,
+            episode,
             joint_state: vec![0.0; 2 * n],
-            action: vec![0.0; n],
             drag: true,
         };
         env.build(&vec![0.0; n]);
@@ -743,25 +738,14 @@ impl Env for Spatial {
             .robot
             .initial_z
             .unwrap_or_else(|| self.torso().translation().z);
-        self.potential = self.potential();
-        self.steps = 0;
-        self.over = false;
+        self.episode.start(self.potential());
         self.observe(obs);
         Ok(())
     }
 
     fn step(&mut self, action: &[f32], obs: &mut [f32]) -> Result<Transition, EnvError> {
         check_obs_len(&self.spec, obs)?;
-        let mut a = std::mem::take(&mut self.action);
-        let clipped = clip_action(&self.spec, action, &mut a);
-        if let Err(e) = clipped {
-            self.action = a;
-            return Err(e);
-        }
-        if self.over {
-            self.action = a;
-            return Err(EnvError::EpisodeOver);
-        }
+        let a = self.episode.begin_step(&self.spec, action)?;
         for _ in 0..self.robot.substeps {
             self.apply_forces(&a);
             self.world.step();
@@ -772,20 +756,10 @@ impl Env for Spatial {
         } else {
             -1.0
         };
-        let old_potential = self.potential;
-        self.potential = self.potential();
-        let progress = self.potential - old_potential;
-        let reward = alive + progress + effort_costs(&a, &self.joint_state, self.robot.cost_scale);
-        self.action = a;
-        self.steps += 1;
-        let terminated = alive < 0.0;
-        let truncated = !terminated && self.steps >= self.spec.episode_len;
-        self.over = terminated || truncated;
-        Ok(Transition {
-            reward,
-            terminated,
-            truncated,
-        })
+        let potential = self.potential();
+        Ok(self
+            .episode
+            .finish_step(a, alive, true, potential, &self.joint_state))
     }
 }
 

@@ -1,15 +1,17 @@
 //! PyBullet's WalkerBase task interface, shared by the planar (rapier2d) and 3D (rapier3d)
 //! walkers: the constants, the potential, the normalised joint state, the observation clip and
-//! the effort costs of the reward.
+//! the effort costs of the reward, and the episode bookkeeping around each physics step.
 
-pub const CONTROL_PERIOD: f32 = 0.0165;
-pub const GRAVITY: f32 = 9.8;
+use super::{EnvError, EnvSpec, Transition, clip_action};
+
+pub(super) const CONTROL_PERIOD: f32 = 0.0165;
+pub(super) const GRAVITY: f32 = 9.8;
 /// PyBullet's walk target, far ahead on x.
-pub const TARGET_X: f32 = 1000.0;
+pub(super) const TARGET_X: f32 = 1000.0;
 /// MuJoCo's default density, which PyBullet's MJCF importer gives every geom.
-pub const DENSITY: f32 = 1000.0;
+pub(super) const DENSITY: f32 = 1000.0;
 /// Joint angles and speeds, then feet contacts, follow these 8 "more" values.
-pub const MORE: usize = 8;
+pub(super) const MORE: usize = 8;
 
 const ELECTRICITY_COST: f64 = -2.0;
 const STALL_TORQUE_COST: f64 = -0.1;
@@ -20,23 +22,23 @@ const OBSERVATION_CLIP: f32 = 5.0;
 const BULLET_DRAG: f32 = 0.04;
 
 /// PyBullet's potential: minus the distance to the target per control period.
-pub fn potential(distance_to_target: f32) -> f64 {
+pub(super) fn potential(distance_to_target: f32) -> f64 {
     -f64::from(distance_to_target) / f64::from(CONTROL_PERIOD)
 }
 
 /// PyBullet's joint state: the angle mapped to [-1, 1] over its range, and 0.1 x the speed.
-pub fn joint_state(q: f32, qdot: f32, (lo, hi): (f32, f32)) -> [f32; 2] {
+pub(super) fn joint_state(q: f32, qdot: f32, (lo, hi): (f32, f32)) -> [f32; 2] {
     let mid = 0.5 * (lo + hi);
     [2.0 * (q - mid) / (hi - lo), 0.1 * qdot]
 }
 
 /// btMultiBody's drag on every link, per unit of momentum: a link moving at `speed` (m/s, or rad/s
 /// for its spin) feels `-drag(speed)` times its momentum (`m v`, or `I w`) as force (or torque).
-pub fn bullet_drag(speed: f32) -> f32 {
+pub(super) fn bullet_drag(speed: f32) -> f32 {
     BULLET_DRAG * (1.0 + speed)
 }
 
-pub fn clip_observation(obs: &mut [f32]) {
+pub(super) fn clip_observation(obs: &mut [f32]) {
     for x in obs.iter_mut() {
         *x = x.clamp(-OBSERVATION_CLIP, OBSERVATION_CLIP);
     }
@@ -45,7 +47,7 @@ pub fn clip_observation(obs: &mut [f32]) {
 /// The reward's cost terms: electricity and stall (means over joints, times `cost_scale`, 4.25
 /// for PyBullet's Humanoid) and the joints-at-limit count. `joint_state` interleaves angles and
 /// speeds as [`joint_state`] gives them.
-pub fn effort_costs(action: &[f32], joint_state: &[f32], cost_scale: f64) -> f64 {
+pub(super) fn effort_costs(action: &[f32], joint_state: &[f32], cost_scale: f64) -> f64 {
     let n = action.len() as f64;
     let speeds = joint_state.iter().skip(1).step_by(2);
     let electricity = ELECTRICITY_COST
@@ -62,6 +64,87 @@ pub fn effort_costs(action: &[f32], joint_state: &[f32], cost_scale: f64) -> f64
         .filter(|q| q.abs() > 0.99)
         .count() as f64;
     cost_scale * (electricity + stall) + JOINTS_AT_LIMIT_COST * at_limit
+}
+
+/// A walker's task around its physics, the same in 2D and 3D: the action check, PyBullet's
+/// reward (alive bonus, progress towards the target, effort costs) and the episode's end.
+#[derive(Clone, Debug)]
+pub(super) struct WalkerEpisode {
+    /// The clipped action, reused so that a step allocates nothing.
+    action: Vec<f32>,
+    potential: f64,
+    steps: u32,
+    over: bool,
+    episode_len: u32,
+    /// Scales the electricity and stall costs (4.25 for PyBullet's Humanoid, else 1).
+    cost_scale: f64,
+}
+
+impl WalkerEpisode {
+    pub(super) fn new(spec: &EnvSpec, cost_scale: f64) -> WalkerEpisode {
+        WalkerEpisode {
+            action: vec![0.0; spec.act_dim],
+            potential: 0.0,
+            steps: 0,
+            over: true,
+            episode_len: spec.episode_len,
+            cost_scale,
+        }
+    }
+
+    /// A new episode whose robot starts at `potential`.
+    pub(super) fn start(&mut self, potential: f64) {
+        self.potential = potential;
+        self.steps = 0;
+        self.over = false;
+    }
+
+    /// The action clipped to the bounds, for the physics to apply; hand it back to
+    /// [`WalkerEpisode::finish_step`]. A refused step changes nothing.
+    pub(super) fn begin_step(
+        &mut self,
+        spec: &EnvSpec,
+        action: &[f32],
+    ) -> Result<Vec<f32>, EnvError> {
+        let mut clipped = std::mem::take(&mut self.action);
+        let checked = match clip_action(spec, action, &mut clipped) {
+            Ok(()) if self.over => Err(EnvError::EpisodeOver),
+            other => other,
+        };
+        match checked {
+            Ok(()) => Ok(clipped),
+            Err(e) => {
+                self.action = clipped;
+                Err(e)
+            }
+        }
+    }
+
+    /// The step's reward and end, once the physics has run: `alive` is the bonus (negative when
+    /// the robot fell), which ends the episode when `falling_ends`; `potential` is the robot's
+    /// new one and `joint_state` its joints as [`joint_state`] gives them.
+    pub(super) fn finish_step(
+        &mut self,
+        action: Vec<f32>,
+        alive: f64,
+        falling_ends: bool,
+        potential: f64,
+        joint_state: &[f32],
+    ) -> Transition {
+        let progress = potential - self.potential;
+        self.potential = potential;
+        let reward = alive + progress + effort_costs(&action, joint_state, self.cost_scale);
+        self.action = action;
+        self.steps += 1;
+        let terminated = falling_ends && alive < 0.0;
+        let truncated = !terminated && self.steps >= self.episode_len;
+        self.over = terminated || truncated;
+        Transition {
+            reward,
+            terminated,
+            truncated,
+        }
+    }
 }
 
 #[cfg(test)]

@@ -6,7 +6,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
 use crate::bundle::ValueScale;
-use crate::domains::{Env, EnvError, forward_distance};
+use crate::domains::{Env, EnvError, EpisodeTotals, forward_distance};
 use crate::plan::Networks;
 use crate::policy::{Evaluator, Policy, unscale_action};
 
@@ -45,19 +45,18 @@ pub fn run_episode(
     };
     let mut action = vec![0.0; ad];
     let mut scaled = vec![0.0; ad];
-    let mut discount = 1.0;
+    let mut totals = EpisodeTotals::new(gamma);
     loop {
         act(&obs, &mut action);
         unscale_action(&spec.action_low, &spec.action_high, &action, &mut scaled);
-        let t = env.step(&scaled, &mut obs)?;
-        episode.ret += t.reward;
-        episode.discounted += discount * t.reward;
-        discount *= gamma;
-        episode.len += 1;
+        let transition = env.step(&scaled, &mut obs)?;
         episode.actions.extend_from_slice(&action);
         episode.observations.extend_from_slice(&obs);
-        if t.terminated || t.truncated {
-            episode.terminated = t.terminated;
+        if totals.record(&transition, 1) {
+            episode.ret = totals.ret;
+            episode.discounted = totals.discounted;
+            episode.len = totals.steps as usize;
+            episode.terminated = totals.terminated;
             episode.distance = forward_distance(start, env);
             return Ok(episode);
         }
