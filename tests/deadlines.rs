@@ -6,12 +6,12 @@ mod common;
 
 use common::{Server, h2_connect, h2_unary, open_default_session};
 use prac::bundle;
-use prac::policy::{Policy, hopper_sized_manifest};
 use prac::proto;
+use prac::testing::hopper_sized_manifest;
 
 fn hopper_bundles() -> tempfile::TempDir {
     let dir = tempfile::tempdir().unwrap();
-    let policy = Policy::random(hopper_sized_manifest(), 3);
+    let policy = prac::testing::random_policy(hopper_sized_manifest(), 3);
     bundle::save(&policy, &dir.path().join("hopper.safetensors")).unwrap();
     dir
 }

@@ -2,9 +2,7 @@
 //! them (PyTorch [out, in] layout) plus `model.*`, and a JSON manifest in `__metadata__`.
 //! See docs/bundle-format.md.
 
-mod manifest;
-
-pub use manifest::*;
+pub use crate::manifest::*;
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};

@@ -1,10 +1,11 @@
 use super::*;
 use crate::plan::Networks;
-use crate::policy::{Evaluator, test_manifest};
+use crate::policy::Evaluator;
+use crate::testing::test_manifest;
 use std::sync::Arc;
 
 fn small_policy() -> Policy {
-    Policy::random(test_manifest("small", "toy", 4, 2, &[8, 8], &[6, 6]), 7)
+    crate::testing::random_policy(test_manifest("small", "toy", 4, 2, &[8, 8], &[6, 6]), 7)
 }
 
 fn path() -> PathBuf {

@@ -9,7 +9,8 @@ use rand_chacha::ChaCha8Rng;
 use crate::plan::{
     Growth, Networks, NonFinite, Plan, ReplanConfig, ReplanJob, ReplanScratch, replan_batch,
 };
-use crate::policy::{Evaluator, Policy, hopper_sized_manifest};
+use crate::policy::Evaluator;
+use crate::testing::hopper_sized_manifest;
 
 /// Counts network evaluations (rows), to turn time into FLOP/s, and calls.
 struct Counting<N> {
@@ -57,7 +58,7 @@ pub struct BenchRow {
 /// length - 1 old actions and appends one, the costliest case. FLOPs are the multiply-adds of
 /// every network evaluation, counted as two each.
 pub fn run(lengths: &[usize], batches: &[usize], per_case: Duration) -> Vec<BenchRow> {
-    let policy = Arc::new(Policy::random(hopper_sized_manifest(), 1));
+    let policy = Arc::new(crate::testing::random_policy(hopper_sized_manifest(), 1));
     let (actor_flops, critic_flops, model_flops) = policy.flops();
     let n_critics = policy.critics.len() as u64;
     let (obs_dim, act_dim) = (policy.obs_dim(), policy.act_dim());
@@ -290,7 +291,7 @@ pub struct KernelRow {
 
 /// Times the critic's forward at each batch size for `per_case` wall time.
 pub fn kernel(batch_rows: &[usize], per_case: Duration) -> Vec<KernelRow> {
-    let policy = Policy::random(hopper_sized_manifest(), 3);
+    let policy = crate::testing::random_policy(hopper_sized_manifest(), 3);
     let critic = &policy.critics[0];
     let mut scratch = critic.scratch();
     batch_rows

@@ -1,13 +1,13 @@
 //! `prac train` and `prac fit-model`.
 
 use std::path::PathBuf;
-use std::time::Duration;
 
 use anyhow::Context;
 use clap::Args;
 
 use crate::train::fit::{FitOptions, Transitions, fit_model};
-use crate::train::run::{TrainOptions, Trainer};
+use crate::train::options::TrainOptions;
+use crate::train::run::Trainer;
 use crate::train::sac::SacConfig;
 
 #[derive(Args, Debug)]
@@ -16,7 +16,7 @@ pub struct TrainArgs {
     #[arg(long)]
     pub domain: String,
     /// Environment steps in all (a resumed run counts its earlier steps).
-    #[arg(long, default_value_t = 100_000)]
+    #[arg(long, default_value_t = TrainOptions::DEFAULT_STEPS)]
     pub steps: u64,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -40,8 +40,8 @@ pub struct TrainArgs {
     #[arg(long)]
     pub checkpoint_dir: Option<PathBuf>,
     /// Time between checkpoints.
-    #[arg(long, default_value = "2m", value_parser = humantime::parse_duration)]
-    pub checkpoint_every: Duration,
+    #[arg(long, default_value_t = TrainOptions::DEFAULT_CHECKPOINT_EVERY.into())]
+    pub checkpoint_every: humantime::Duration,
     /// Leave the replay buffer out of checkpoints (smaller files; a resumed run then refills the
     /// buffer with its current policy before it learns again).
     #[arg(long)]
@@ -50,12 +50,12 @@ pub struct TrainArgs {
     #[arg(long)]
     pub resume: bool,
     /// Steps between deterministic evaluations.
-    #[arg(long, default_value_t = 10_000)]
+    #[arg(long, default_value_t = TrainOptions::DEFAULT_EVAL_EVERY)]
     pub eval_every: u64,
-    #[arg(long, default_value_t = 5)]
+    #[arg(long, default_value_t = TrainOptions::DEFAULT_EVAL_EPISODES)]
     pub eval_episodes: usize,
     /// Episodes for V_pi and V_rand at the end.
-    #[arg(long, default_value_t = 50)]
+    #[arg(long, default_value_t = TrainOptions::DEFAULT_VALUE_EPISODES)]
     pub value_episodes: usize,
     /// Hide the progress bar.
     #[arg(long)]
@@ -82,7 +82,7 @@ pub struct TrainArgs {
     pub hidden: Option<Vec<usize>>,
 }
 
-fn apply_overrides(config: &mut SacConfig, a: &TrainArgs) -> anyhow::Result<()> {
+fn apply_overrides(config: &mut SacConfig, a: &TrainArgs) {
     macro_rules! set {
         ($field:ident) => {
             if let Some(v) = a.$field.clone() {
@@ -99,39 +99,9 @@ fn apply_overrides(config: &mut SacConfig, a: &TrainArgs) -> anyhow::Result<()> 
     set!(train_freq);
     set!(gradient_steps);
     set!(hidden);
-    anyhow::ensure!(
-        config.gamma > 0.0 && config.gamma < 1.0,
-        "--gamma must be in (0, 1)"
-    );
-    anyhow::ensure!(config.batch_size > 0, "--batch-size must be > 0");
-    anyhow::ensure!(config.train_freq > 0, "--train-freq must be > 0");
-    anyhow::ensure!(
-        config.learning_rate > 0.0 && config.learning_rate.is_finite(),
-        "--learning-rate must be > 0"
-    );
-    anyhow::ensure!(
-        !config.hidden.is_empty() && config.hidden.iter().all(|&h| h > 0),
-        "--hidden needs at least one layer, all > 0"
-    );
-    Ok(())
-}
-
-fn parse_value_scale(text: &str) -> anyhow::Result<(f64, f64)> {
-    let (v_pi, v_rand) = super::parse_number_pair(text, "--value-scale V_PI,V_RAND")?;
-    anyhow::ensure!(
-        v_pi > v_rand,
-        "--value-scale takes V_PI,V_RAND with V_PI > V_RAND, got '{text}'"
-    );
-    Ok((v_pi, v_rand))
 }
 
 pub fn train(args: TrainArgs) -> anyhow::Result<()> {
-    anyhow::ensure!(
-        args.epsilon_coef.is_finite() && args.epsilon_coef >= 0.0,
-        "--epsilon-coef must be >= 0"
-    );
-    anyhow::ensure!(args.max_horizon >= 1, "--max-horizon must be >= 1");
-    anyhow::ensure!(args.eval_every > 0, "--eval-every must be > 0");
     let mut options = TrainOptions::new(&args.domain, &args.out);
     options.steps = args.steps;
     options.seed = args.seed;
@@ -140,7 +110,7 @@ pub fn train(args: TrainArgs) -> anyhow::Result<()> {
     options.value_scale = args
         .value_scale
         .as_deref()
-        .map(parse_value_scale)
+        .map(|text| super::parse_number_pair(text, "--value-scale V_PI,V_RAND"))
         .transpose()?;
     if let Some(csv) = &args.csv {
         options.csv = csv.clone();
@@ -149,13 +119,13 @@ pub fn train(args: TrainArgs) -> anyhow::Result<()> {
     if let Some(dir) = &args.checkpoint_dir {
         options.checkpoint_dir = dir.clone();
     }
-    options.checkpoint_every = args.checkpoint_every;
+    options.checkpoint_every = args.checkpoint_every.into();
     options.checkpoint_replay = !args.no_checkpoint_replay;
     options.eval_every = args.eval_every;
-    options.eval_episodes = args.eval_episodes.max(1);
-    options.value_episodes = args.value_episodes.max(1);
+    options.eval_episodes = args.eval_episodes;
+    options.value_episodes = args.value_episodes;
     options.progress = !args.quiet;
-    apply_overrides(&mut options.sac, &args)?;
+    apply_overrides(&mut options.sac, &args);
     let mut trainer = Trainer::new(options, args.resume)?;
     if args.resume {
         eprintln!(

@@ -3,11 +3,8 @@
 
 use std::sync::Arc;
 
-use rand::{Rng, SeedableRng};
-use rand_chacha::ChaCha8Rng;
-
-use crate::bundle::{Manifest, Normalization, QAggregation};
-use crate::nn::{Activation, Dense, Mlp, MlpScratch, resize};
+use crate::manifest::{Manifest, Normalization, QAggregation};
+use crate::nn::{Dense, Mlp, MlpScratch, resize};
 use crate::plan::{MAX_CHUNK, Networks};
 
 /// SB3 clamps log_std to this range.
@@ -48,64 +45,6 @@ impl Policy {
     }
     pub fn act_dim(&self) -> usize {
         self.manifest.act_dim
-    }
-
-    /// A policy with PyTorch-default random weights (U(+-1/sqrt(fan_in))) for the manifest's
-    /// architecture: for benchmarks and tests.
-    pub fn random(manifest: Manifest, seed: u64) -> Policy {
-        let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let (obs, act) = (manifest.obs_dim, manifest.act_dim);
-        let mut dense = |out: usize, inp: usize| {
-            let bound = 1.0 / (inp as f32).sqrt();
-            let w: Vec<f32> = (0..out * inp)
-                .map(|_| rng.random_range(-bound..bound))
-                .collect();
-            let b: Vec<f32> = (0..out).map(|_| rng.random_range(-bound..bound)).collect();
-            Dense::from_row_major(out, inp, &w, &b)
-        };
-        let mut chain = |inp: usize, hidden: &[usize], out: Option<usize>| {
-            let mut layers = Vec::new();
-            let mut width = inp;
-            for &h in hidden.iter().chain(out.as_ref()) {
-                layers.push(dense(h, width));
-                width = h;
-            }
-            layers
-        };
-        let spec = &manifest.actor;
-        let trunk = Mlp::new(obs, chain(obs, &spec.hidden, None), spec.activation, true)
-            .expect("consistent shapes");
-        let latent = trunk.output_dim();
-        let critics = (0..manifest.critic.n_critics)
-            .map(|_| {
-                Mlp::new(
-                    obs + act,
-                    chain(obs + act, &manifest.critic.hidden, Some(1)),
-                    manifest.critic.activation,
-                    false,
-                )
-                .expect("consistent shapes")
-            })
-            .collect();
-        let model = manifest.model.as_ref().map(|spec| DynamicsModel {
-            net: Mlp::new(
-                obs + act,
-                chain(obs + act, &spec.hidden, Some(obs)),
-                spec.activation,
-                false,
-            )
-            .expect("consistent shapes"),
-            normalization: spec.normalization.clone(),
-        });
-        let mu = chain(latent, &[], Some(act)).remove(0);
-        let log_std = chain(latent, &[], Some(act)).remove(0);
-        Policy {
-            content_hash: String::new(),
-            actor: Actor { trunk, mu, log_std },
-            critics,
-            model,
-            manifest,
-        }
     }
 
     /// Maps an action from [-1, 1] to the action bounds.
@@ -294,74 +233,15 @@ pub fn unscale_action(low: &[f32], high: &[f32], squashed: &[f32], out: &mut [f3
     }
 }
 
-/// The architecture of the paper's Hopper policy (SB3 defaults, model 4 x 64), for benchmarks and
-/// tests.
-pub fn hopper_sized_manifest() -> Manifest {
-    test_manifest(
-        "hopper-bench",
-        "hopper",
-        15,
-        3,
-        &[256, 256],
-        &[64, 64, 64, 64],
-    )
-}
-
-/// A manifest with identity normalisation, symmetric unit action bounds and a made-up value
-/// scale: for benchmarks and tests that build their own networks.
-pub fn test_manifest(
-    name: &str,
-    domain: &str,
-    obs_dim: usize,
-    act_dim: usize,
-    hidden: &[usize],
-    model_hidden: &[usize],
-) -> Manifest {
-    use crate::bundle::{CriticSpec, FORMAT_VERSION, ModelSpec, NetSpec, Provenance, ValueScale};
-    Manifest {
-        format_version: FORMAT_VERSION,
-        name: name.to_string(),
-        domain: domain.to_string(),
-        obs_dim,
-        act_dim,
-        action_low: vec![-1.0; act_dim],
-        action_high: vec![1.0; act_dim],
-        gamma: 0.98,
-        actor: NetSpec {
-            hidden: hidden.to_vec(),
-            activation: Activation::Relu,
-        },
-        critic: CriticSpec {
-            n_critics: 2,
-            hidden: hidden.to_vec(),
-            activation: Activation::Relu,
-        },
-        model: Some(ModelSpec {
-            hidden: model_hidden.to_vec(),
-            activation: Activation::Relu,
-            normalization: Normalization::identity(obs_dim, act_dim),
-        }),
-        q_aggregation: QAggregation::Min,
-        value_scale: Some(ValueScale {
-            v_pi: 10.0,
-            v_rand: -10.0,
-        }),
-        provenance: Provenance {
-            trainer: "random init (test)".to_string(),
-            steps: 0,
-            seed: 0,
-            date: "1970-01-01T00:00:00Z".to_string(),
-        },
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::nn::Activation;
+    use crate::testing::test_manifest;
 
     #[test]
     fn batched_and_single_evaluations_agree() {
-        let policy = Arc::new(Policy::random(
+        let policy = Arc::new(crate::testing::random_policy(
             test_manifest("t", "d", 5, 2, &[16, 16], &[8]),
             3,
         ));
@@ -398,7 +278,7 @@ mod tests {
         let mut manifest = test_manifest("t", "d", 3, 2, &[4], &[4]);
         manifest.action_low = vec![-2.0, 0.0];
         manifest.action_high = vec![2.0, 10.0];
-        let policy = Policy::random(manifest, 0);
+        let policy = crate::testing::random_policy(manifest, 0);
         let mut env = [0.0; 2];
         policy.unscale_action(&[-1.0, 0.5], &mut env);
         assert_eq!(env, [-2.0, 7.5]);
@@ -414,7 +294,7 @@ mod tests {
         normalization.delta_mean = vec![1.0, -1.0];
         normalization.delta_std = vec![2.0, 2.0];
         normalization.obs_std = vec![0.5, 0.5];
-        let mut policy = Policy::random(manifest, 0);
+        let mut policy = crate::testing::random_policy(manifest, 0);
         // A linear model (no hidden layers) whose output is its first two inputs.
         policy.model.as_mut().unwrap().net = Mlp::new(
             3,

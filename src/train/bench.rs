@@ -10,7 +10,8 @@ use rand_distr::StandardNormal;
 
 use super::buffer::ReplayBuffer;
 use super::model::ModelTrainer;
-use super::run::{TrainOptions, Trainer};
+use super::options::TrainOptions;
+use super::run::Trainer;
 use super::sac::{Batch, Sac, SacConfig};
 
 pub struct BenchTrain {

@@ -14,7 +14,7 @@ use serde::{Deserialize, Serialize};
 
 use super::buffer::ReplayBuffer;
 use super::model::{ModelStats, ModelTrainer};
-use super::run::{Progress, TrainOptions};
+use super::options::{Progress, TrainOptions};
 use super::sac::Sac;
 
 pub const STATE_FILE: &str = "state.json";

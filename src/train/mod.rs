@@ -19,6 +19,7 @@ pub mod eval;
 pub mod fit;
 pub mod model;
 pub mod nets;
+pub mod options;
 pub mod run;
 pub mod sac;
 

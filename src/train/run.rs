@@ -6,86 +6,27 @@ use std::fs::{File, OpenOptions};
 use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::time::{Duration, Instant, SystemTime};
+use std::time::{Instant, SystemTime};
 
 use anyhow::{Context, bail};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 
 use super::buffer::ReplayBuffer;
 use super::checkpoint;
 use super::eval::{self, ModelError, Trajectory};
 use super::model::ModelTrainer;
+use super::options::{Progress, TrainOptions};
 use super::sac::{Batch, Sac, SacConfig, SacLosses};
 use crate::bundle::{
     CriticSpec, FORMAT_VERSION, Manifest, ModelSpec, NetSpec, Provenance, QAggregation, ValueScale,
 };
-use crate::domains::{self, Env, EnvSpec};
+use crate::domains::{self, Env, EnvSpec, EpisodeTotals};
 use crate::nn::Activation;
-use crate::plan::{self, Growth, Networks, Planner, ReplanConfig};
+use crate::plan::{Growth, Networks, Planner, ReplanConfig};
 use crate::policy::{Evaluator, Policy};
-
-/// Checkpoints written before the option existed had no buffer; runs save it by default.
-fn saves_replay() -> bool {
-    true
-}
-
-/// Everything `prac train` takes.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct TrainOptions {
-    pub domain: String,
-    pub steps: u64,
-    pub seed: u64,
-    /// > 0: act from the PrAC plan with eps = coef * (V_pi - V_rand).
-    pub epsilon_coef: f64,
-    pub max_horizon: usize,
-    /// Fixed (V_pi, V_rand) for eps while training; otherwise V_rand is measured before training
-    /// and V_pi is the critic's value of the current policy at each episode's first state.
-    pub value_scale: Option<(f64, f64)>,
-    pub sac: SacConfig,
-    pub out: PathBuf,
-    pub csv: PathBuf,
-    pub eval_csv: PathBuf,
-    pub checkpoint_dir: PathBuf,
-    pub checkpoint_every: Duration,
-    /// Checkpoints hold the replay buffer, so a resumed run learns on from the same data.
-    #[serde(default = "saves_replay")]
-    pub checkpoint_replay: bool,
-    pub eval_every: u64,
-    pub eval_episodes: usize,
-    /// Episodes for V_pi and V_rand at the end.
-    pub value_episodes: usize,
-    pub progress: bool,
-}
-
-impl TrainOptions {
-    /// Defaults for a domain, writing `out` and files beside it.
-    pub fn new(domain: &str, out: &Path) -> TrainOptions {
-        let stem = out.with_extension("");
-        let beside = |suffix: &str| PathBuf::from(format!("{}{suffix}", stem.display()));
-        TrainOptions {
-            domain: domain.to_string(),
-            steps: 100_000,
-            seed: 0,
-            epsilon_coef: 0.0,
-            max_horizon: plan::DEFAULT_MAX_HORIZON,
-            value_scale: None,
-            sac: SacConfig::for_domain(domain),
-            out: out.to_path_buf(),
-            csv: beside(".train.csv"),
-            eval_csv: beside(".eval.csv"),
-            checkpoint_dir: beside(".ckpt"),
-            checkpoint_every: Duration::from_secs(120),
-            checkpoint_replay: true,
-            eval_every: 10_000,
-            eval_episodes: 5,
-            value_episodes: 50,
-            progress: true,
-        }
-    }
-}
 
 /// What a finished run reports.
 #[derive(Clone, Debug, Serialize)]
@@ -103,24 +44,6 @@ pub struct TrainReport {
     pub random_return_mean: f64,
     pub model_errors: Vec<ModelError>,
     pub out: PathBuf,
-}
-
-/// Counters and recent history: what a checkpoint stores besides the networks.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct Progress {
-    pub step: u64,
-    pub episode: u64,
-    pub gradient_steps: u64,
-    /// Transitions in the buffer since this process started: those it collected plus those
-    /// restored from the checkpoint. Learning waits until they cover the warm-up.
-    #[serde(skip)]
-    pub fresh_steps: u64,
-    pub v_rand: Option<f64>,
-    pub recent_returns: Vec<f64>,
-    pub recent_forecasts: Vec<f64>,
-    pub last_losses: SacLosses,
-    pub last_model_loss: f32,
-    pub seconds: f64,
 }
 
 pub const CSV_HEADER: &str = "step,episode,return,discounted_return,length,forecast,epsilon,critic_loss,actor_loss,model_loss,ent_coef";
@@ -244,6 +167,7 @@ impl Trainer {
                 domains::DOMAINS.join(", ")
             );
         };
+        options.validate()?;
         let spec = env.spec().clone();
         let (od, ad) = (spec.obs_dim, spec.act_dim);
         let mut init_rng = ChaCha8Rng::seed_from_u64(options.seed);
@@ -366,7 +290,7 @@ impl Trainer {
         let mut last_checkpoint = Instant::now();
         let mut episode_seed = self.options.seed.wrapping_mul(1_000_003) + self.progress.episode;
         self.env.reset(episode_seed, &mut obs)?;
-        let (mut t, mut ret, mut disc, mut discount, mut forecast_sum) = (0u64, 0.0, 0.0, 1.0, 0.0);
+        let mut totals = EpisodeTotals::new(gamma);
         self.start_episode(&obs, &mut evaluator);
 
         while self.progress.step < self.options.steps {
@@ -377,11 +301,11 @@ impl Trainer {
                     .iter_mut()
                     .for_each(|a| *a = self.rng.random_range(-1.0..=1.0));
             } else if let Some(agent) = &mut self.agent {
-                if let Err(e) = agent.replan(&mut evaluator, &obs, t) {
+                if let Err(e) = agent.replan(&mut evaluator, &obs, totals.steps) {
                     bail!("replan failed at step {}: {e}", self.progress.step);
                 }
                 action.copy_from_slice(agent.plan().action(0));
-                f_t = agent.forecast(t);
+                f_t = agent.forecast(totals.steps);
             } else {
                 noise
                     .iter_mut()
@@ -398,11 +322,6 @@ impl Trainer {
                 transition.terminated,
             );
             self.model.stats.push(&obs, &action, &next_obs, &mut delta);
-            ret += transition.reward;
-            disc += discount * transition.reward;
-            discount *= gamma;
-            forecast_sum += f_t as f64;
-            t += 1;
             self.progress.step += 1;
             self.progress.fresh_steps += 1;
             std::mem::swap(&mut obs, &mut next_obs);
@@ -433,8 +352,9 @@ impl Trainer {
                 self.refresh_policy(&mut evaluator);
             }
 
-            if transition.terminated || transition.truncated {
-                let forecast = forecast_sum / t as f64;
+            if totals.record(&transition, f_t) {
+                let forecast = totals.forecast();
+                let (ret, disc, t) = (totals.ret, totals.discounted, totals.steps);
                 let l = &self.progress.last_losses;
                 let epsilon = self.agent.as_ref().map_or(0.0, |a| a.config.epsilon);
                 writeln!(
@@ -452,7 +372,7 @@ impl Trainer {
                 self.progress.episode += 1;
                 episode_seed = self.options.seed.wrapping_mul(1_000_003) + self.progress.episode;
                 self.env.reset(episode_seed, &mut obs)?;
-                (t, ret, disc, discount, forecast_sum) = (0, 0.0, 0.0, 1.0, 0.0);
+                totals = EpisodeTotals::new(gamma);
                 self.start_episode(&obs, &mut evaluator);
                 // Checkpoints fall between episodes, so a resumed run starts a fresh one.
                 if last_checkpoint.elapsed() >= self.options.checkpoint_every {

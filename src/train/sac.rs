@@ -56,6 +56,27 @@ impl Default for SacConfig {
 impl SacConfig {
     /// The paper's settings for a domain (section 4.1): SB3 defaults with gamma 0.98, and the
     /// zoo's overrides for Cheetah and Humanoid.
+    /// Refuses settings SAC cannot learn with.
+    pub fn validate(&self) -> anyhow::Result<()> {
+        anyhow::ensure!(
+            self.gamma > 0.0 && self.gamma < 1.0,
+            "--gamma must be in (0, 1), got {}",
+            self.gamma
+        );
+        anyhow::ensure!(self.batch_size > 0, "--batch-size must be > 0");
+        anyhow::ensure!(self.train_freq > 0, "--train-freq must be > 0");
+        anyhow::ensure!(
+            self.learning_rate > 0.0 && self.learning_rate.is_finite(),
+            "--learning-rate must be > 0, got {}",
+            self.learning_rate
+        );
+        anyhow::ensure!(
+            !self.hidden.is_empty() && self.hidden.iter().all(|&h| h > 0),
+            "--hidden needs at least one layer, all > 0"
+        );
+        Ok(())
+    }
+
     pub fn for_domain(domain: &str) -> SacConfig {
         let base = SacConfig::default();
         match domain {

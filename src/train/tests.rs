@@ -7,7 +7,8 @@ use rand_distr::StandardNormal;
 
 use super::model::ModelTrainer;
 use super::nets::{matrix, rows};
-use super::run::{TrainOptions, Trainer, snapshot};
+use super::options::TrainOptions;
+use super::run::{Trainer, snapshot};
 use super::sac::{Batch, Sac, SacConfig};
 use crate::domains;
 use crate::plan::Networks;
@@ -350,4 +351,24 @@ fn pendulum_training_beats_the_random_policy() {
     assert!(scale.v_pi > scale.v_rand);
     assert_eq!(policy.manifest.provenance.steps, 4000);
     assert!(report.model_errors[0].nrmse.is_finite());
+}
+
+#[test]
+fn the_trainer_refuses_what_the_command_line_refuses() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("p.safetensors");
+    let refused = |change: &dyn Fn(&mut TrainOptions)| {
+        let mut options = TrainOptions::new("pendulum", &out);
+        change(&mut options);
+        let Err(e) = Trainer::new(options, false) else {
+            panic!("accepted");
+        };
+        e.to_string()
+    };
+    assert!(refused(&|o| o.epsilon_coef = -1.0).contains("--epsilon-coef"));
+    assert!(refused(&|o| o.max_horizon = 0).contains("--max-horizon"));
+    assert!(refused(&|o| o.eval_episodes = 0).contains("--eval-episodes"));
+    assert!(refused(&|o| o.value_scale = Some((0.0, 1.0))).contains("V_PI > V_RAND"));
+    assert!(refused(&|o| o.sac.gamma = 1.0).contains("--gamma"));
+    assert!(refused(&|o| o.sac.hidden.clear()).contains("--hidden"));
 }

@@ -146,9 +146,9 @@ impl Drop for ToyServer {
 fn toy_server() -> ToyServer {
     use std::io::BufRead;
     let dir = tempfile::tempdir().unwrap();
-    let manifest = prac::policy::test_manifest("toy", "toy", 3, 2, &[16], &[8]);
+    let manifest = prac::testing::test_manifest("toy", "toy", 3, 2, &[16], &[8]);
     prac::bundle::save(
-        &prac::policy::Policy::random(manifest, 1),
+        &prac::testing::random_policy(manifest, 1),
         &dir.path().join("toy.safetensors"),
     )
     .unwrap();

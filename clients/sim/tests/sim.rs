@@ -216,7 +216,7 @@ fn play_drives_a_rapier_domain_with_an_untrained_lander_policy() {
     // Random weights of the SAC architecture for the lander's sizes: the client and server
     // plumbing on a physics domain, whatever the policy's quality.
     let dir = tempfile::tempdir().unwrap();
-    let mut manifest = prac::policy::test_manifest(
+    let mut manifest = prac::testing::test_manifest(
         "lander-untrained",
         "lander",
         8,
@@ -225,7 +225,7 @@ fn play_drives_a_rapier_domain_with_an_untrained_lander_policy() {
         &[64, 64, 64, 64],
     );
     manifest.provenance.trainer = "random init (prac-sim test)".into();
-    let policy = prac::policy::Policy::random(manifest, 11);
+    let policy = prac::testing::random_policy(manifest, 11);
     prac::bundle::save(&policy, &dir.path().join("lander-untrained.safetensors")).unwrap();
     let episodes = play_json(
         dir.path(),
