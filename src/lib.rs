@@ -1,6 +1,8 @@
 //! prac: predictable actor-critic control (PrAC) served over gRPC.
 //!
 //! - [`nn`]: f32 MLPs on nalgebra.
+//! - [`manifest`]: what a policy is (sizes, bounds, architecture, normalisation), as a bundle
+//!   stores it.
 //! - [`bundle`]: the safetensors weight-bundle format.
 //! - [`policy`]: a loaded policy's networks and the per-session evaluator.
 //! - [`plan`]: Replan (Algorithm 2), shared by serving and training.
@@ -8,18 +10,24 @@
 //! - [`domains`]: the environments (task interface) for training and the simulator client.
 //! - [`train`]: SAC + dynamics model training (Algorithm 1) with burn.
 //! - [`render`]: pictures of domains and plans, and charts (plotters).
+//! - [`client`]: connecting, waiting for a server's policies, a local server, resuming sessions.
 //! - [`cli`]: `prac inspect` and `prac bench-replan`.
+
+// Items no caller outside the crate can reach are marked so: visibility is the boundary.
+#![warn(unreachable_pub)]
 
 pub mod bundle;
 pub mod cli;
 pub mod client;
 pub mod domains;
-pub mod fuzz;
+pub mod manifest;
 pub mod nn;
 pub mod plan;
 pub mod policy;
 pub mod render;
 pub mod serve;
+#[doc(hidden)]
+pub mod testing;
 pub mod train;
 
 pub mod proto {

@@ -8,9 +8,9 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use prac::plan::{ReplanConfig, ReplanScratch};
-use prac::policy::{Evaluator, Policy, hopper_sized_manifest};
-use prac::serve::arrival::Arrival;
-use prac::serve::session::{Session, SessionSettings};
+use prac::policy::Evaluator;
+use prac::serve::{Arrival, Session, SessionSettings};
+use prac::testing::hopper_sized_manifest;
 
 struct Counting;
 
@@ -47,7 +47,7 @@ static GLOBAL: Counting = Counting;
 
 #[test]
 fn steps_after_the_first_do_not_allocate() {
-    let policy = Arc::new(Policy::random(hopper_sized_manifest(), 3));
+    let policy = Arc::new(prac::testing::random_policy(hopper_sized_manifest(), 3));
     for (epsilon, sampled) in [(0.0, false), (0.05, true), (1e9, false)] {
         let settings = SessionSettings {
             replan: ReplanConfig {

@@ -525,43 +525,6 @@ async fn every_error_status_with_a_clear_message() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn idle_sessions_expire_with_failed_precondition() {
-    let dir = bundle_dir();
-    let server = Server::start(dir.path(), &["--session-ttl", "300ms"]);
-    server.wait_serving().await;
-    let mut client = server.client().await;
-    let idle = open(&mut client, options(None, None, 0)).await;
-    let busy = open(&mut client, options(None, None, 0)).await;
-    client
-        .step(step_request(&idle, vec![0.0; 3], false))
-        .await
-        .unwrap();
-    // The busy session keeps stepping and stays alive past the TTL.
-    for _ in 0..12 {
-        client
-            .step(step_request(&busy, vec![0.0; 3], false))
-            .await
-            .unwrap();
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
-    let status = client
-        .step(step_request(&idle, vec![0.0; 3], false))
-        .await
-        .expect_err("idle session must have expired");
-    assert_eq!(status.code(), Code::FailedPrecondition, "{status:?}");
-    assert!(
-        status.message().contains("expired at"),
-        "{}",
-        status.message()
-    );
-    assert!(
-        status.message().contains("TTL is 300ms"),
-        "{}",
-        status.message()
-    );
-}
-
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_session_cap_answers_resource_exhausted() {
     let dir = bundle_dir();
     let server = Server::start(dir.path(), &["--max-sessions", "3"]);

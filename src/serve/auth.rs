@@ -11,7 +11,7 @@ use sha2::{Digest, Sha256};
 use tonic::Status;
 use tonic::metadata::MetadataMap;
 
-pub struct Tokens {
+pub(super) struct Tokens {
     digests: HashSet<[u8; 32]>,
 }
 
@@ -20,13 +20,13 @@ fn digest(token: &str) -> [u8; 32] {
 }
 
 impl Tokens {
-    pub fn load(path: &Path) -> anyhow::Result<Tokens> {
+    pub(super) fn load(path: &Path) -> anyhow::Result<Tokens> {
         let text = std::fs::read_to_string(path)
             .with_context(|| format!("cannot read auth tokens {}", path.display()))?;
         Tokens::parse(&text).with_context(|| format!("auth tokens {}", path.display()))
     }
 
-    pub fn parse(text: &str) -> anyhow::Result<Tokens> {
+    pub(super) fn parse(text: &str) -> anyhow::Result<Tokens> {
         let mut digests = HashSet::new();
         for (i, line) in text.lines().enumerate() {
             let token = line.trim();
@@ -45,7 +45,7 @@ impl Tokens {
     }
 
     /// The caller's identity: a hex digest prefix of its token.
-    pub fn caller(&self, metadata: &MetadataMap) -> Result<String, Status> {
+    pub(super) fn caller(&self, metadata: &MetadataMap) -> Result<String, Status> {
         let value = metadata.get("authorization").ok_or_else(|| {
             Status::unauthenticated("missing 'authorization: Bearer TOKEN' metadata")
         })?;
@@ -64,7 +64,10 @@ impl Tokens {
 }
 
 /// The caller of a request: None when auth is off.
-pub fn caller(tokens: Option<&Tokens>, metadata: &MetadataMap) -> Result<Option<String>, Status> {
+pub(super) fn caller(
+    tokens: Option<&Tokens>,
+    metadata: &MetadataMap,
+) -> Result<Option<String>, Status> {
     tokens.map(|t| t.caller(metadata)).transpose()
 }
 

@@ -18,8 +18,9 @@ use tonic::Status;
 
 use super::arrival::Arrival;
 use super::session::{Begun, SessionSlot};
-use crate::plan::{NonFinite, ReplanOutcome, ReplanScratch, replan_batch};
-use crate::policy::{Evaluator, Policy};
+use super::workspace::{Workspace, Workspaces};
+use crate::plan::{NonFinite, ReplanOutcome, replan_batch};
+use crate::policy::Policy;
 use crate::proto;
 
 /// Settings of the batch workers.
@@ -35,7 +36,7 @@ pub struct BatchConfig {
 }
 
 /// A step's answer: the response and the session's steps served with it (to take it back).
-pub type Answer = Result<(proto::StepResponse, u64), Status>;
+pub(super) type Answer = Result<(proto::StepResponse, u64), Status>;
 
 struct Work {
     slot: Arc<SessionSlot>,
@@ -49,7 +50,7 @@ struct Work {
 
 /// The submitting side of the batch queues.
 #[derive(Clone)]
-pub struct Batcher {
+pub(super) struct Batcher {
     queues: Vec<Sender<Work>>,
     capacity: usize,
     /// Steps submitted whose callers still wait for their answers.
@@ -59,7 +60,7 @@ pub struct Batcher {
 }
 
 /// Counts one waiting caller while it lives (a dropped, cancelled call included).
-pub struct Waiting<'a>(&'a AtomicUsize);
+pub(super) struct Waiting<'a>(&'a AtomicUsize);
 
 impl<'a> Waiting<'a> {
     fn enter(count: &'a AtomicUsize) -> Waiting<'a> {
@@ -77,7 +78,7 @@ impl Drop for Waiting<'_> {
 impl Batcher {
     /// Starts the worker threads, each with its share of the queue; they stop when every
     /// `Batcher` clone is dropped.
-    pub fn start(config: BatchConfig) -> Batcher {
+    pub(super) fn start(config: BatchConfig) -> Batcher {
         let workers = config.workers.max(1);
         let per_worker = config.queue.div_ceil(workers).max(1);
         let mut queues = Vec::with_capacity(workers);
@@ -101,7 +102,7 @@ impl Batcher {
     /// nothing to be batched with: this claims the right to replan it in its handler, until the
     /// guard drops. Steps that come meanwhile are batched. A session's steps keep their order,
     /// since its next step cannot claim while an earlier one waits.
-    pub fn claim_alone(&self) -> Option<Waiting<'_>> {
+    pub(super) fn claim_alone(&self) -> Option<Waiting<'_>> {
         if !self.inline_when_alone {
             return None;
         }
@@ -114,7 +115,7 @@ impl Batcher {
     /// Queues a step and waits for its answer, until `deadline`. A step is applied only if its
     /// answer is taken here: one the worker answers after the caller gave up (this future was
     /// dropped, or the deadline passed) is taken back.
-    pub async fn step(
+    pub(super) async fn step(
         &self,
         slot: Arc<SessionSlot>,
         request: proto::StepRequest,
@@ -169,16 +170,14 @@ impl Batcher {
 /// One worker's networks and buffers, reused across batches.
 struct Worker {
     config: BatchConfig,
-    evaluators: HashMap<*const Policy, Evaluator>,
-    scratch: ReplanScratch,
+    workspaces: Workspaces,
 }
 
 impl Worker {
     fn new(config: BatchConfig) -> Worker {
         Worker {
             config,
-            evaluators: HashMap::new(),
-            scratch: ReplanScratch::default(),
+            workspaces: Workspaces::new(config.max_batch, 0),
         }
     }
 
@@ -211,8 +210,7 @@ impl Worker {
                     tracing::error!("a batch worker panicked; its batch was dropped");
                     batch.clear();
                     deferred.clear();
-                    self.scratch = ReplanScratch::default();
-                    self.evaluators.clear();
+                    self.workspaces.clear();
                 }
                 std::mem::swap(&mut batch, &mut deferred);
             }
@@ -235,7 +233,7 @@ impl Worker {
             let policy = Arc::as_ptr(&work.slot.policy);
             groups.entry(policy).or_default().push(work);
         }
-        for (key, works) in groups {
+        for works in groups.into_values() {
             let mut seen: Vec<*const SessionSlot> = Vec::with_capacity(works.len());
             let mut mine = Vec::with_capacity(works.len());
             for work in works {
@@ -247,12 +245,12 @@ impl Worker {
                     mine.push(work);
                 }
             }
-            self.replan_group(key, mine);
+            self.replan_group(mine);
         }
     }
 
     /// Replans the sessions of `works` (all of one policy, each session once) together.
-    fn replan_group(&mut self, key: *const Policy, mut works: Vec<Work>) {
+    fn replan_group(&mut self, mut works: Vec<Work>) {
         // Sessions are locked in one global order, so workers never wait on each other in a cycle.
         works.sort_by_key(|work| Arc::as_ptr(&work.slot));
         let mut slots = Vec::with_capacity(works.len());
@@ -276,17 +274,7 @@ impl Worker {
                 })
                 .collect();
             let mut rngs: Vec<_> = sessions.iter().map(|s| s.rng()).collect();
-            let policy = sessions[0].policy.clone();
-            let max_batch = self.config.max_batch;
-            if !self.evaluators.contains_key(&key) {
-                // Policies replaced by a reload, whose sessions are all gone: only we hold them.
-                self.evaluators
-                    .retain(|_, e| Arc::strong_count(e.policy()) > 1);
-            }
-            let evaluator = self
-                .evaluators
-                .entry(key)
-                .or_insert_with(|| Evaluator::with_capacity(policy, max_batch));
+            let Workspace { evaluator, scratch } = self.workspaces.get(&sessions[0].policy);
             let mut jobs = Vec::with_capacity(sessions.len());
             for (((session, rng), request), begun) in sessions
                 .iter_mut()
@@ -300,7 +288,7 @@ impl Worker {
             }
             let mut results: Vec<Result<ReplanOutcome, NonFinite>> =
                 vec![Err(NonFinite { what: "", index: 0 }); jobs.len()];
-            replan_batch(evaluator, &mut jobs, &mut self.scratch, &mut results);
+            replan_batch(evaluator, &mut jobs, scratch, &mut results);
             drop(jobs);
             let mut results = results.into_iter();
             let mut answers: Vec<Answer> = Vec::with_capacity(sessions.len());

@@ -1,7 +1,7 @@
 //! `prac serve` settings: command-line flags over an optional TOML file over defaults.
 
 use std::net::SocketAddr;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::Context;
@@ -17,120 +17,160 @@ pub enum LogFormat {
     Json,
 }
 
-/// Flags of `prac serve`; each overrides the same key of the `--config` file.
-#[derive(Clone, Debug, Default, clap::Args)]
-pub struct ServeArgs {
-    /// TOML file with any of the keys below (snake_case, e.g. max_sessions = 64).
-    #[arg(long)]
-    pub config: Option<PathBuf>,
-    /// Address to listen on, e.g. 127.0.0.1:50051, [::1]:50051 or localhost:50051
-    /// [default: 127.0.0.1:50051]; port 0 picks a free port.
-    #[arg(long, value_parser = socket_address)]
-    pub listen: Option<SocketAddr>,
-    /// Directory of NAME.safetensors bundles [default: bundles/ in the repository].
-    #[arg(long)]
-    pub bundles: Option<PathBuf>,
-    /// Most sessions open at once [default: 1024].
-    #[arg(long)]
-    pub max_sessions: Option<usize>,
-    /// A session unused for this long is evicted, e.g. "5m" [default: 5m].
-    #[arg(long, value_parser = humantime::parse_duration)]
-    pub session_ttl: Option<Duration>,
-    /// Largest gRPC message accepted or sent, in bytes [default: 4194304].
-    #[arg(long)]
-    pub max_message_bytes: Option<usize>,
-    /// On SIGINT/SIGTERM, how long to wait for in-flight work before exiting [default: 10s].
-    #[arg(long, value_parser = humantime::parse_duration)]
-    pub drain_timeout: Option<Duration>,
-    /// Log format on stderr [default: text].
-    #[arg(long, value_enum)]
-    pub log_format: Option<LogFormat>,
-    /// Refuse to start if any bundle fails to load (default: skip it with an error).
-    #[arg(long)]
-    pub strict: bool,
-    /// Largest max_horizon, grow k or fixed n a session may ask for [default: 256].
-    #[arg(long)]
-    pub max_horizon_limit: Option<usize>,
-    /// Most steps replanned together across sessions; 0 turns batching off (each step is
-    /// replanned in its request handler) [default: 64].
-    #[arg(long)]
-    pub batch_max: Option<usize>,
-    /// How long a batch worker waits for more steps after the first, e.g. "200us"; 0 takes only
-    /// what is already queued, adding no delay [default: 0s].
-    #[arg(long, value_parser = humantime::parse_duration)]
-    pub batch_window: Option<Duration>,
-    /// Steps that may wait for a batch worker; more are refused with RESOURCE_EXHAUSTED
-    /// [default: 4096].
-    #[arg(long)]
-    pub batch_queue: Option<usize>,
-    /// Batch worker threads [default: 2].
-    #[arg(long)]
-    pub batch_workers: Option<usize>,
-    /// File of bearer tokens, one per line: every prac.v1 call must carry
-    /// `authorization: Bearer TOKEN`, and a session belongs to the token that opened it
-    /// [default: no auth].
-    #[arg(long)]
-    pub auth_tokens: Option<PathBuf>,
-    /// PEM certificate chain: serve TLS (with --tls-key) [default: plaintext].
-    #[arg(long, requires = "tls_key")]
-    pub tls_cert: Option<PathBuf>,
-    /// PEM private key of --tls-cert.
-    #[arg(long, requires = "tls_cert")]
-    pub tls_key: Option<PathBuf>,
-    /// Serve Prometheus metrics over HTTP at ADDR/metrics, e.g. 127.0.0.1:9090; port 0 picks a
-    /// free port (printed as `metrics on ADDR`) [default: off].
-    #[arg(long, value_parser = socket_address)]
-    pub metrics_listen: Option<SocketAddr>,
-    /// Most client connections open at once; more are closed when accepted (lowered to fit the
-    /// open-file limit) [default: 1024].
-    #[arg(long)]
-    pub max_connections: Option<usize>,
-    /// Most concurrent streams (calls) on one connection (HTTP/2 SETTINGS_MAX_CONCURRENT_STREAMS)
-    /// [default: 256].
-    #[arg(long)]
-    pub max_streams_per_connection: Option<u32>,
-    /// A connection must finish its TLS handshake and send its first request within this, or it
-    /// is closed [default: 10s].
-    #[arg(long, value_parser = humantime::parse_duration)]
-    pub handshake_timeout: Option<Duration>,
-    /// A connection with no call in flight for this long is closed with GOAWAY (clients
-    /// reconnect by themselves); 0s keeps idle connections [default: 10m].
-    #[arg(long, value_parser = humantime::parse_duration)]
-    pub idle_timeout: Option<Duration>,
-    /// Interval of HTTP/2 PINGs to each client; 0s sends none [default: 30s].
-    #[arg(long, value_parser = humantime::parse_duration)]
-    pub keepalive_interval: Option<Duration>,
-    /// A PING unanswered for this long closes the connection [default: 20s].
-    #[arg(long, value_parser = humantime::parse_duration)]
-    pub keepalive_timeout: Option<Duration>,
+/// Declares every setting once: its flag, its TOML key (the same name), its parser (shared by
+/// both) and its default, which the help text shows.
+macro_rules! settings {
+    ($(
+        $(#[doc = $doc:literal])*
+        $name:ident: $ty:ty = $default:literal, $parse:expr;
+    )*) => {
+        /// Flags of `prac serve`; each overrides the same key of the `--config` file.
+        #[derive(Clone, Debug, Default, clap::Args)]
+        pub struct ServeArgs {
+            /// TOML file with any of the keys below (snake_case, e.g. max_sessions = 64).
+            #[arg(long)]
+            pub config: Option<PathBuf>,
+            /// Refuse to start if any bundle fails to load (default: skip it with an error).
+            #[arg(long)]
+            pub strict: bool,
+            $(
+                $(#[doc = $doc])*
+                #[doc = concat!("[default: ", $default, "]")]
+                #[arg(long, value_parser = $parse)]
+                pub $name: Option<$ty>,
+            )*
+        }
+
+        /// Every setting resolved: flag, else file, else default ("none" for no value).
+        #[derive(Clone, Debug, PartialEq)]
+        struct Settled {
+            strict: bool,
+            $($name: Option<$ty>,)*
+        }
+
+        /// The TOML keys, for the unknown-key error.
+        const KEYS: &[&str] = &["strict", $(stringify!($name),)*];
+
+        impl ServeArgs {
+            fn settle(&self, file: &toml::Table) -> anyhow::Result<Settled> {
+                let strict = match file.get("strict") {
+                    None => false,
+                    Some(toml::Value::Boolean(b)) => *b,
+                    Some(other) => anyhow::bail!("strict = {other} is not true or false"),
+                };
+                Ok(Settled {
+                    strict: self.strict || strict,
+                    $($name: match &self.$name {
+                        Some(value) => Some(value.clone()),
+                        None => match file.get(stringify!($name)) {
+                            Some(value) => Some(from_file(stringify!($name), value, $parse)?),
+                            None => parse_default($default, $parse),
+                        },
+                    },)*
+                })
+            }
+        }
+    };
 }
 
-#[derive(Debug, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct FileConfig {
-    listen: Option<SocketAddr>,
-    bundles: Option<PathBuf>,
-    max_sessions: Option<usize>,
-    session_ttl: Option<String>,
-    max_message_bytes: Option<usize>,
-    drain_timeout: Option<String>,
-    log_format: Option<LogFormat>,
-    strict: Option<bool>,
-    max_horizon_limit: Option<usize>,
-    batch_max: Option<usize>,
-    batch_window: Option<String>,
-    batch_queue: Option<usize>,
-    batch_workers: Option<usize>,
-    auth_tokens: Option<PathBuf>,
-    tls_cert: Option<PathBuf>,
-    tls_key: Option<PathBuf>,
-    metrics_listen: Option<SocketAddr>,
-    max_connections: Option<usize>,
-    max_streams_per_connection: Option<u32>,
-    handshake_timeout: Option<String>,
-    idle_timeout: Option<String>,
-    keepalive_interval: Option<String>,
-    keepalive_timeout: Option<String>,
+settings! {
+    /// Address to listen on, e.g. 127.0.0.1:50051, [::1]:50051 or localhost:50051; port 0 picks
+    /// a free port.
+    listen: SocketAddr = "127.0.0.1:50051", socket_address;
+    /// Directory of NAME.safetensors bundles, relative to the working directory.
+    bundles: PathBuf = "bundles", path;
+    /// Most sessions open at once.
+    max_sessions: usize = "1024", number::<usize>;
+    /// A session unused for this long is evicted, e.g. "5m".
+    session_ttl: Duration = "5m", duration;
+    /// Largest gRPC message accepted or sent, in bytes.
+    max_message_bytes: usize = "4194304", number::<usize>;
+    /// On SIGINT/SIGTERM, how long to wait for in-flight work before exiting.
+    drain_timeout: Duration = "10s", duration;
+    /// Log format on stderr: text or json.
+    log_format: LogFormat = "text", log_format;
+    /// Largest max_horizon, grow k or fixed n a session may ask for.
+    max_horizon_limit: usize = "256", number::<usize>;
+    /// Most steps replanned together across sessions; 0 turns batching off (each step is
+    /// replanned in its request handler).
+    batch_max: usize = "64", number::<usize>;
+    /// How long a batch worker waits for more steps after the first, e.g. "200us"; 0 takes only
+    /// what is already queued, adding no delay.
+    batch_window: Duration = "0s", duration;
+    /// Steps that may wait for a batch worker; more are refused with RESOURCE_EXHAUSTED.
+    batch_queue: usize = "4096", number::<usize>;
+    /// Batch worker threads.
+    batch_workers: usize = "2", number::<usize>;
+    /// File of bearer tokens, one per line: every prac.v1 call must carry
+    /// `authorization: Bearer TOKEN`, and a session belongs to the token that opened it; none
+    /// turns auth off.
+    auth_tokens: PathBuf = "none", path;
+    /// PEM certificate chain: serve TLS (with --tls-key); none serves plaintext.
+    tls_cert: PathBuf = "none", path;
+    /// PEM private key of --tls-cert.
+    tls_key: PathBuf = "none", path;
+    /// Serve Prometheus metrics over HTTP at ADDR/metrics, e.g. 127.0.0.1:9090; port 0 picks a
+    /// free port (printed as `metrics on ADDR`); none serves no metrics.
+    metrics_listen: SocketAddr = "none", socket_address;
+    /// Most client connections open at once; more are closed when accepted (lowered to fit the
+    /// open-file limit).
+    max_connections: usize = "1024", number::<usize>;
+    /// Most concurrent streams (calls) on one connection (HTTP/2
+    /// SETTINGS_MAX_CONCURRENT_STREAMS).
+    max_streams_per_connection: u32 = "256", number::<u32>;
+    /// A connection must finish its TLS handshake and send its first request within this, or it
+    /// is closed.
+    handshake_timeout: Duration = "10s", duration;
+    /// A connection with no call in flight for this long is closed with GOAWAY (clients
+    /// reconnect by themselves); 0s keeps idle connections.
+    idle_timeout: Duration = "10m", duration;
+    /// Interval of HTTP/2 PINGs to each client; 0s sends none.
+    keepalive_interval: Duration = "30s", duration;
+    /// A PING unanswered for this long closes the connection.
+    keepalive_timeout: Duration = "20s", duration;
+}
+
+/// A setting's default: "none" for no value; the others parse (a unit test checks them all).
+fn parse_default<T>(text: &str, parse: impl Fn(&str) -> Result<T, String>) -> Option<T> {
+    (text != "none").then(|| parse(text).unwrap_or_else(|e| panic!("default {text:?}: {e}")))
+}
+
+/// A file value, read as the flag would read its text.
+fn from_file<T>(
+    key: &str,
+    value: &toml::Value,
+    parse: impl Fn(&str) -> Result<T, String>,
+) -> anyhow::Result<T> {
+    let text = match value {
+        toml::Value::String(s) => s.clone(),
+        toml::Value::Integer(n) => n.to_string(),
+        toml::Value::Float(x) => x.to_string(),
+        toml::Value::Boolean(b) => b.to_string(),
+        other => anyhow::bail!("{key} = {other} is not a single value"),
+    };
+    parse(&text).map_err(|e| anyhow::anyhow!("{key} = {value}: {e}"))
+}
+
+fn number<T: std::str::FromStr>(text: &str) -> Result<T, String>
+where
+    T::Err: std::fmt::Display,
+{
+    text.parse()
+        .map_err(|e| format!("{text:?} is not a whole number: {e}"))
+}
+
+fn duration(text: &str) -> Result<Duration, String> {
+    humantime::parse_duration(text)
+        .map_err(|e| format!("{text:?} is not a duration such as \"30s\" or \"5m\": {e}"))
+}
+
+fn path(text: &str) -> Result<PathBuf, String> {
+    Ok(PathBuf::from(text))
+}
+
+fn log_format(text: &str) -> Result<LogFormat, String> {
+    <LogFormat as clap::ValueEnum>::from_str(text, true)
+        .map_err(|_| format!("{text:?} is not a log format; expected text or json"))
 }
 
 /// The settings in force.
@@ -156,41 +196,9 @@ pub struct ServeConfig {
     pub connections: Limits,
 }
 
-/// The repository's bundle directory, which holds the shipped bundles.
-pub fn default_bundle_dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("bundles")
-}
-
 impl Default for ServeConfig {
     fn default() -> Self {
-        ServeConfig {
-            listen: SocketAddr::from(([127, 0, 0, 1], 50051)),
-            bundles: default_bundle_dir(),
-            max_sessions: 1024,
-            session_ttl: Duration::from_secs(300),
-            max_message_bytes: 4 << 20,
-            drain_timeout: Duration::from_secs(10),
-            log_format: LogFormat::Text,
-            strict: false,
-            max_horizon_limit: 256,
-            batch: Some(BatchConfig {
-                max_batch: 64,
-                window: Duration::ZERO,
-                queue: 4096,
-                workers: 2,
-            }),
-            auth_tokens: None,
-            tls: None,
-            metrics_listen: None,
-            connections: Limits {
-                max_connections: 1024,
-                max_streams_per_connection: 256,
-                handshake_timeout: Duration::from_secs(10),
-                idle_timeout: Some(Duration::from_secs(600)),
-                keepalive_interval: Some(Duration::from_secs(30)),
-                keepalive_timeout: Duration::from_secs(20),
-            },
-        }
+        ServeConfig::resolve(&ServeArgs::default()).expect("the defaults are valid")
     }
 }
 
@@ -221,114 +229,63 @@ fn nonzero(d: Duration) -> Option<Duration> {
     (!d.is_zero()).then_some(d)
 }
 
-fn duration(key: &str, text: Option<String>) -> anyhow::Result<Option<Duration>> {
-    text.map(|t| {
-        humantime::parse_duration(&t)
-            .with_context(|| format!("{key} = {t:?} is not a duration such as \"30s\" or \"5m\""))
-    })
-    .transpose()
-}
-
 impl ServeConfig {
+    /// Flags over the `--config` file over defaults, validated.
     pub fn resolve(args: &ServeArgs) -> anyhow::Result<ServeConfig> {
         let file = match &args.config {
             Some(path) => {
                 let text = std::fs::read_to_string(path)
                     .with_context(|| format!("cannot read config {}", path.display()))?;
-                toml::from_str::<FileConfig>(&text)
-                    .with_context(|| format!("invalid config {}", path.display()))?
+                let table = toml::from_str::<toml::Table>(&text)
+                    .with_context(|| format!("invalid config {}", path.display()))?;
+                if let Some(unknown) = table.keys().find(|k| !KEYS.contains(&k.as_str())) {
+                    anyhow::bail!(
+                        "invalid config {}: unknown key {unknown}; known keys: {}",
+                        path.display(),
+                        KEYS.join(", ")
+                    );
+                }
+                table
             }
-            None => FileConfig::default(),
+            None => toml::Table::new(),
         };
-        let d = ServeConfig::default();
+        let s = args.settle(&file).with_context(|| match &args.config {
+            Some(path) => format!("invalid config {}", path.display()),
+            None => "invalid settings".to_string(),
+        })?;
+        let has = "every setting but the optional ones has a default";
+        let max_batch = s.batch_max.expect(has);
         let config = ServeConfig {
-            listen: args.listen.or(file.listen).unwrap_or(d.listen),
-            bundles: args.bundles.clone().or(file.bundles).unwrap_or(d.bundles),
-            max_sessions: args
-                .max_sessions
-                .or(file.max_sessions)
-                .unwrap_or(d.max_sessions),
-            session_ttl: args
-                .session_ttl
-                .or(duration("session_ttl", file.session_ttl)?)
-                .unwrap_or(d.session_ttl),
-            max_message_bytes: args
-                .max_message_bytes
-                .or(file.max_message_bytes)
-                .unwrap_or(d.max_message_bytes),
-            drain_timeout: args
-                .drain_timeout
-                .or(duration("drain_timeout", file.drain_timeout)?)
-                .unwrap_or(d.drain_timeout),
-            log_format: args.log_format.or(file.log_format).unwrap_or(d.log_format),
-            strict: args.strict || file.strict.unwrap_or(false),
-            max_horizon_limit: args
-                .max_horizon_limit
-                .or(file.max_horizon_limit)
-                .unwrap_or(d.max_horizon_limit),
-            batch: None,
-            auth_tokens: args.auth_tokens.clone().or(file.auth_tokens),
-            tls: match (
-                args.tls_cert.clone().or(file.tls_cert),
-                args.tls_key.clone().or(file.tls_key),
-            ) {
+            listen: s.listen.expect(has),
+            bundles: s.bundles.expect(has),
+            max_sessions: s.max_sessions.expect(has),
+            session_ttl: s.session_ttl.expect(has),
+            max_message_bytes: s.max_message_bytes.expect(has),
+            drain_timeout: s.drain_timeout.expect(has),
+            log_format: s.log_format.expect(has),
+            strict: s.strict,
+            max_horizon_limit: s.max_horizon_limit.expect(has),
+            batch: (max_batch > 0).then_some(BatchConfig {
+                max_batch,
+                window: s.batch_window.expect(has),
+                queue: s.batch_queue.expect(has),
+                workers: s.batch_workers.expect(has),
+            }),
+            auth_tokens: s.auth_tokens,
+            tls: match (s.tls_cert, s.tls_key) {
                 (Some(cert), Some(key)) => Some((cert, key)),
                 (None, None) => None,
                 _ => anyhow::bail!("tls_cert and tls_key go together"),
             },
-            metrics_listen: args.metrics_listen.or(file.metrics_listen),
-            connections: {
-                let dc = d.connections;
-                Limits {
-                    max_connections: args
-                        .max_connections
-                        .or(file.max_connections)
-                        .unwrap_or(dc.max_connections),
-                    max_streams_per_connection: args
-                        .max_streams_per_connection
-                        .or(file.max_streams_per_connection)
-                        .unwrap_or(dc.max_streams_per_connection),
-                    handshake_timeout: args
-                        .handshake_timeout
-                        .or(duration("handshake_timeout", file.handshake_timeout)?)
-                        .unwrap_or(dc.handshake_timeout),
-                    idle_timeout: match args
-                        .idle_timeout
-                        .or(duration("idle_timeout", file.idle_timeout)?)
-                    {
-                        Some(d) => nonzero(d),
-                        None => dc.idle_timeout,
-                    },
-                    keepalive_interval: match args
-                        .keepalive_interval
-                        .or(duration("keepalive_interval", file.keepalive_interval)?)
-                    {
-                        Some(d) => nonzero(d),
-                        None => dc.keepalive_interval,
-                    },
-                    keepalive_timeout: args
-                        .keepalive_timeout
-                        .or(duration("keepalive_timeout", file.keepalive_timeout)?)
-                        .unwrap_or(dc.keepalive_timeout),
-                }
+            metrics_listen: s.metrics_listen,
+            connections: Limits {
+                max_connections: s.max_connections.expect(has),
+                max_streams_per_connection: s.max_streams_per_connection.expect(has),
+                handshake_timeout: s.handshake_timeout.expect(has),
+                idle_timeout: s.idle_timeout.and_then(nonzero),
+                keepalive_interval: s.keepalive_interval.and_then(nonzero),
+                keepalive_timeout: s.keepalive_timeout.expect(has),
             },
-        };
-        let db = d.batch.expect("batching is on by default");
-        let max_batch = args.batch_max.or(file.batch_max).unwrap_or(db.max_batch);
-        let config = ServeConfig {
-            batch: (max_batch > 0).then_some(BatchConfig {
-                max_batch,
-                window: args
-                    .batch_window
-                    .or(duration("batch_window", file.batch_window)?)
-                    .unwrap_or(db.window),
-                queue: args.batch_queue.or(file.batch_queue).unwrap_or(db.queue),
-                workers: args
-                    .batch_workers
-                    .or(file.batch_workers)
-                    .unwrap_or(db.workers),
-            }),
-            ..config
         };
         anyhow::ensure!(config.max_sessions > 0, "max_sessions must be at least 1");
         anyhow::ensure!(
@@ -386,6 +343,72 @@ mod tests {
                 .unwrap_err()
                 .contains("not a number")
         );
+    }
+
+    /// The defaults declared with the settings, and so shown by --help, are the documented ones.
+    #[test]
+    fn the_declared_defaults_are_the_documented_ones() {
+        let c = ServeConfig::default();
+        assert_eq!(c.listen, "127.0.0.1:50051".parse().unwrap());
+        assert_eq!(c.bundles, PathBuf::from("bundles"));
+        assert_eq!(c.max_sessions, 1024);
+        assert_eq!(c.session_ttl, Duration::from_secs(300));
+        assert_eq!(c.max_message_bytes, 4 << 20);
+        assert_eq!(c.drain_timeout, Duration::from_secs(10));
+        assert_eq!(c.log_format, LogFormat::Text);
+        assert!(!c.strict);
+        assert_eq!(c.max_horizon_limit, 256);
+        assert_eq!(
+            c.batch,
+            Some(BatchConfig {
+                max_batch: 64,
+                window: Duration::ZERO,
+                queue: 4096,
+                workers: 2,
+            })
+        );
+        assert_eq!((c.auth_tokens, c.tls, c.metrics_listen), (None, None, None));
+        assert_eq!(
+            c.connections,
+            Limits {
+                max_connections: 1024,
+                max_streams_per_connection: 256,
+                handshake_timeout: Duration::from_secs(10),
+                idle_timeout: Some(Duration::from_secs(600)),
+                keepalive_interval: Some(Duration::from_secs(30)),
+                keepalive_timeout: Duration::from_secs(20),
+            }
+        );
+    }
+
+    #[test]
+    fn file_values_are_read_as_their_flags_and_bad_ones_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("prac.toml");
+        let resolve = |text: &str| {
+            std::fs::write(&file, text).unwrap();
+            ServeConfig::resolve(&ServeArgs {
+                config: Some(file.clone()),
+                ..Default::default()
+            })
+        };
+        let c = resolve("batch_max = 0\nidle_timeout = \"0s\"\nstrict = true\n").unwrap();
+        assert_eq!(c.batch, None, "batch_max = 0 turns batching off");
+        assert_eq!(
+            c.connections.idle_timeout, None,
+            "0s keeps idle connections"
+        );
+        assert!(c.strict);
+        for (text, named) in [
+            ("session_ttl = \"soon\"", "session_ttl"),
+            ("max_sessions = \"many\"", "max_sessions"),
+            ("log_format = \"xml\"", "log_format"),
+            ("strict = 1", "strict"),
+            ("tls_cert = \"cert.pem\"", "tls_key go together"),
+        ] {
+            let err = format!("{:#}", resolve(text).unwrap_err());
+            assert!(err.contains(named), "{text}: {err}");
+        }
     }
 
     #[test]

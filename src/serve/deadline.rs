@@ -9,7 +9,7 @@ use tonic::metadata::MetadataMap;
 
 /// The instant a call's `grpc-timeout` runs out, counted from `received`; None without one.
 /// A malformed header is treated as absent, as gRPC servers do.
-pub fn of(metadata: &MetadataMap, received: Instant) -> Option<Instant> {
+pub(super) fn of(metadata: &MetadataMap, received: Instant) -> Option<Instant> {
     let text = metadata.get("grpc-timeout")?.to_str().ok()?;
     parse(text).map(|timeout| received + timeout)
 }
@@ -33,14 +33,14 @@ fn parse(text: &str) -> Option<Duration> {
 }
 
 /// The answer to a step whose caller's deadline passed before it was applied.
-pub fn exceeded() -> Status {
+pub(super) fn exceeded() -> Status {
     Status::deadline_exceeded(
         "the call's deadline passed before the step was applied; the session is unchanged",
     )
 }
 
 /// Whether `deadline` has passed.
-pub fn passed(deadline: Option<Instant>) -> bool {
+pub(super) fn passed(deadline: Option<Instant>) -> bool {
     deadline.is_some_and(|d| d <= Instant::now())
 }
 

@@ -11,13 +11,13 @@ use tonic_health::pb::health_server::Health;
 use tonic_health::pb::{HealthCheckRequest, HealthCheckResponse};
 use tonic_health::server::{HealthReporter, HealthService};
 
-pub struct ShutdownAwareHealth {
+pub(super) struct ShutdownAwareHealth {
     inner: HealthService,
     shutdown: CancellationToken,
 }
 
 impl ShutdownAwareHealth {
-    pub fn new(reporter: HealthReporter, shutdown: CancellationToken) -> Self {
+    pub(super) fn new(reporter: HealthReporter, shutdown: CancellationToken) -> Self {
         ShutdownAwareHealth {
             inner: HealthService::from_health_reporter(reporter),
             shutdown,

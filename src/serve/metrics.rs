@@ -17,14 +17,13 @@ use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
 use prometheus_client::registry::Registry;
 use tokio_util::sync::CancellationToken;
 
-use super::service::ServerState;
 use super::transport::{ConnectionStats, Limits, accept_loop};
 use axum::extract::Request;
 use hyper::body::Incoming;
 
 type Labels = Vec<(&'static str, String)>;
 
-pub struct Metrics {
+pub(super) struct Metrics {
     registry: Registry,
     steps: Family<Labels, Counter>,
     step_latency: Histogram,
@@ -44,7 +43,7 @@ pub struct Metrics {
 
 /// Where a step was replanned.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum ReplannedBy {
+pub(super) enum ReplannedBy {
     /// In its request handler: alone, or with batching off.
     Handler,
     /// By a batch worker, with the steps queued with it.
@@ -124,14 +123,14 @@ impl Default for Metrics {
 
 impl Metrics {
     /// The step counter of one policy, taken once per session so a step allocates nothing.
-    pub fn policy_steps(&self, policy: &str) -> Counter {
+    pub(super) fn policy_steps(&self, policy: &str) -> Counter {
         self.steps
             .get_or_create(&vec![("policy", policy.to_string())])
             .clone()
     }
 
     /// One step served: `steps` is its policy's counter (`policy_steps`).
-    pub fn step(&self, steps: &Counter, latency: Duration, forecast: usize, broke: bool) {
+    pub(super) fn step(&self, steps: &Counter, latency: Duration, forecast: usize, broke: bool) {
         steps.inc();
         self.step_latency.observe(latency.as_secs_f64());
         self.forecast_length.observe(forecast as f64);
@@ -140,7 +139,7 @@ impl Metrics {
         }
     }
 
-    pub fn replanned(&self, by: ReplannedBy) {
+    pub(super) fn replanned(&self, by: ReplannedBy) {
         let (counter, label) = match by {
             ReplannedBy::Handler => (&self.replanned_by_handler, "handler"),
             ReplannedBy::BatchWorker => (&self.replanned_by_batch_worker, "batch_worker"),
@@ -153,21 +152,21 @@ impl Metrics {
             .inc();
     }
 
-    pub fn error(&self, status: &tonic::Status) {
+    pub(super) fn error(&self, status: &tonic::Status) {
         self.errors
             .get_or_create(&vec![("code", format!("{:?}", status.code()))])
             .inc();
     }
 
-    pub fn session_opened(&self) {
+    pub(super) fn session_opened(&self) {
         self.sessions_opened.inc();
     }
 
-    pub fn evicted(&self, count: usize) {
+    pub(super) fn evicted(&self, count: usize) {
         self.evictions.inc_by(count as u64);
     }
 
-    pub fn reload(&self, clean: bool) {
+    pub(super) fn reload(&self, clean: bool) {
         let result = if clean { "ok" } else { "errors" };
         self.reloads
             .get_or_create(&vec![("result", result.to_string())])
@@ -175,7 +174,7 @@ impl Metrics {
     }
 
     /// The OpenMetrics text of every metric, with the open-session gauge read now.
-    pub fn encode(&self, open_sessions: usize) -> String {
+    pub(super) fn encode(&self, open_sessions: usize) -> String {
         self.open_sessions.set(open_sessions as i64);
         let mut text = String::new();
         encode(&mut text, &self.registry).expect("writing to a String cannot fail");
@@ -183,8 +182,11 @@ impl Metrics {
     }
 }
 
-async fn scrape(State(state): State<Arc<ServerState>>) -> impl IntoResponse {
-    let text = state.metrics.encode(state.sessions.len());
+/// Writes the OpenMetrics text of a scrape.
+pub(super) type Scrape = Arc<dyn Fn() -> String + Send + Sync>;
+
+async fn scrape(State(scrape): State<Scrape>) -> impl IntoResponse {
+    let text = scrape();
     Response::builder()
         .status(StatusCode::OK)
         .header(
@@ -196,7 +198,7 @@ async fn scrape(State(state): State<Arc<ServerState>>) -> impl IntoResponse {
 }
 
 /// Connections the metrics endpoint holds at once: scrapers are few.
-pub const MAX_METRICS_CONNECTIONS: usize = 64;
+pub(super) const MAX_METRICS_CONNECTIONS: usize = 64;
 
 /// Largest request head (request line and headers) the metrics endpoint reads.
 const MAX_METRICS_REQUEST_BYTES: usize = 16 * 1024;
@@ -204,9 +206,9 @@ const MAX_METRICS_REQUEST_BYTES: usize = 16 * 1024;
 /// Serves `/metrics` on `listener` until shutdown: one request per connection, whose whole life
 /// (request, scrape, response read) must fit in the handshake timeout, so slow or silent clients
 /// cannot hold the endpoint; at most [`MAX_METRICS_CONNECTIONS`] at once.
-pub async fn serve(
+pub(super) async fn serve(
     listener: tokio::net::TcpListener,
-    state: Arc<ServerState>,
+    scrape_text: Scrape,
     limits: Limits,
     shutdown: CancellationToken,
 ) {
@@ -214,7 +216,7 @@ pub async fn serve(
     use tonic::codegen::Service;
     let router = Router::new()
         .route("/metrics", get(scrape))
-        .with_state(state);
+        .with_state(scrape_text);
     let stats = Arc::new(ConnectionStats::default());
     let cap = MAX_METRICS_CONNECTIONS.min(limits.max_connections);
     let lifetime = limits.handshake_timeout;

@@ -1,31 +1,33 @@
 //! `prac serve`: the gRPC daemon.
 
-pub mod arrival;
-pub mod auth;
-pub mod batch;
-pub mod config;
-pub mod deadline;
-pub mod health;
-pub mod local;
-pub mod metrics;
-pub mod registry;
-pub mod service;
-pub mod session;
-pub mod transport;
+pub(crate) mod arrival;
+mod auth;
+mod batch;
+mod config;
+mod deadline;
+mod health;
+mod metrics;
+mod registry;
+mod service;
+pub(crate) mod session;
+mod transport;
+mod workspace;
 
+use std::future::Future;
 use std::io::IsTerminal;
 use std::sync::{Arc, RwLock};
-use std::time::Duration;
 
 use anyhow::Context;
 use tokio::net::TcpListener;
 use tokio_util::sync::CancellationToken;
 use tonic_health::ServingStatus;
 
+pub use arrival::Arrival;
 pub use config::{LogFormat, ServeArgs, ServeConfig};
 use registry::Registry;
 use service::{PracService, ServerState};
 use session::Sessions;
+pub use session::{Session, SessionSettings};
 
 use crate::proto::{self, prac_server::PracServer};
 
@@ -71,11 +73,7 @@ async fn termination_signal() {
 /// get the new versions; open sessions keep the policy they opened with until they close; a
 /// broken new file keeps the old version.
 #[cfg(unix)]
-async fn reload_on_hangup<F, Fut>(state: Arc<ServerState>, dir: std::path::PathBuf, set_health: F)
-where
-    F: Fn(ServingStatus) -> Fut,
-    Fut: std::future::Future<Output = ()>,
-{
+async fn reload_on_hangup(state: Arc<ServerState>, dir: std::path::PathBuf, health: Health) {
     let mut hangup = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()) {
         Ok(hangup) => hangup,
         Err(e) => {
@@ -120,19 +118,31 @@ where
         let serving = !registry.is_empty();
         *state.registry.write().unwrap_or_else(|p| p.into_inner()) = Some(Arc::new(registry));
         if !state.shutdown.is_cancelled() {
-            set_health(if serving {
-                ServingStatus::Serving
-            } else {
-                ServingStatus::NotServing
-            })
-            .await;
+            health
+                .set(if serving {
+                    ServingStatus::Serving
+                } else {
+                    ServingStatus::NotServing
+                })
+                .await;
         }
     }
 }
 
-/// Runs the server until SIGINT/SIGTERM. Prints `listening on ADDR` on stdout once bound (port 0
-/// picks a free port; scripts and tests read that line).
-pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
+/// The listeners and what the transport needs, made ready before any bundle loads.
+pub struct Bound {
+    pub grpc: TcpListener,
+    /// The Prometheus endpoint's, when asked for.
+    pub metrics: Option<TcpListener>,
+    tls: Option<tokio_rustls::TlsAcceptor>,
+    auth: Option<auth::Tokens>,
+    limits: transport::Limits,
+}
+
+/// Reads what the settings name (token file, certificate, bundle directory) and binds the
+/// listeners. Anything wrong stops the server here, before its ready line: a supervisor waiting
+/// for `listening on` must not see it from a server that is about to exit.
+pub async fn bind(config: &ServeConfig) -> anyhow::Result<Bound> {
     // A bad token file stops the server: starting without the auth it was asked for is worse.
     let auth = config
         .auth_tokens
@@ -157,15 +167,12 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
             "the open-file limit (ulimit -n) allows fewer connections than asked; raise it to serve more"
         );
     }
-    // A directory that cannot be read stops the server before its ready line: a supervisor
-    // waiting for `listening on` must not see it from a server that is about to exit.
     std::fs::read_dir(&config.bundles)
         .with_context(|| format!("cannot read bundle directory {}", config.bundles.display()))?;
-    let listener = TcpListener::bind(config.listen)
+    let grpc = TcpListener::bind(config.listen)
         .await
         .with_context(|| format!("cannot listen on {}", config.listen))?;
-    let addr = listener.local_addr()?;
-    let metrics_listener = match config.metrics_listen {
+    let metrics = match config.metrics_listen {
         Some(at) => Some(
             TcpListener::bind(at)
                 .await
@@ -173,112 +180,186 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
         ),
         None => None,
     };
+    Ok(Bound {
+        grpc,
+        metrics,
+        tls,
+        auth,
+        limits,
+    })
+}
 
-    let shutdown = CancellationToken::new();
-    let health = tonic_health::server::HealthReporter::new();
+/// Runs the server until SIGINT/SIGTERM. Prints `listening on ADDR` on stdout once bound (port 0
+/// picks a free port; scripts and tests read that line).
+pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
+    let bound = bind(&config).await?;
+    if let Some(metrics) = &bound.metrics {
+        // Printed before the gRPC address, which scripts wait for as the ready line.
+        println!("metrics on {}", metrics.local_addr()?);
+    }
+    let addr = bound.grpc.local_addr()?;
+    println!("listening on {addr}");
+    tracing::info!(%addr, bundles = %config.bundles.display(), "listening");
+    serve(bound, &config, termination_signal()).await
+}
+
+/// The health service's view of the server: NOT_SERVING until bundles load and from shutdown on.
+#[derive(Clone)]
+struct Health(tonic_health::server::HealthReporter);
+
+impl Health {
+    async fn set(&self, status: ServingStatus) {
+        self.0.set_service_status("", status).await;
+        self.0
+            .set_service_status(
+                <PracServer<PracService> as tonic::server::NamedService>::NAME,
+                status,
+            )
+            .await;
+    }
+}
+
+/// Serves on `bound` until `shutdown` resolves, then drains for up to the drain timeout: health
+/// goes NOT_SERVING first, open streams end with UNAVAILABLE. Bundles load from the settings'
+/// directory while the listener already accepts (answering UNAVAILABLE until they are in).
+pub async fn serve(
+    bound: Bound,
+    config: &ServeConfig,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> anyhow::Result<()> {
+    let cancel = CancellationToken::new();
+    let reporter = tonic_health::server::HealthReporter::new();
     let health_service = tonic_health::pb::health_server::HealthServer::new(
-        health::ShutdownAwareHealth::new(health.clone(), shutdown.clone()),
+        health::ShutdownAwareHealth::new(reporter.clone(), cancel.clone()),
     );
-    let set_health = move |status: ServingStatus| {
-        let health = health.clone();
-        async move {
-            health.set_service_status("", status).await;
-            health
-                .set_service_status(
-                    <PracServer<PracService> as tonic::server::NamedService>::NAME,
-                    status,
-                )
-                .await;
-        }
-    };
-    set_health(ServingStatus::NotServing).await;
-
+    let health = Health(reporter);
+    health.set(ServingStatus::NotServing).await;
     let reflection = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
         .build_v1()
         .context("building the reflection service")?;
 
-    let state = Arc::new(ServerState {
-        registry: RwLock::new(None),
-        sessions: Sessions::new(config.max_sessions, config.session_ttl),
-        max_horizon_limit: config.max_horizon_limit,
-        max_message_bytes: config.max_message_bytes,
-        shutdown: shutdown.clone(),
-        batcher: config.batch.map(batch::Batcher::start),
-        auth,
-        metrics: metrics::Metrics::default(),
-    });
+    let state = server_state(config, bound.auth, cancel.clone());
     let prac = PracServer::new(PracService {
         state: state.clone(),
     })
     .max_decoding_message_size(config.max_message_bytes)
     .max_encoding_message_size(config.max_message_bytes);
-
     let routes = tonic::service::Routes::new(health_service)
         .add_service(reflection)
         .add_service(prac);
-    let connections = Arc::new(transport::ConnectionStats::default());
     let server = transport::serve_grpc(
-        listener,
-        tls,
+        bound.grpc,
+        bound.tls,
         routes,
-        limits,
-        connections.clone(),
-        shutdown.clone(),
+        bound.limits,
+        Arc::new(transport::ConnectionStats::default()),
+        cancel.clone(),
     );
-    let mut server = tokio::spawn(async move {
-        server.await;
-        anyhow::Ok(())
-    });
-    if let Some(listener) = metrics_listener {
-        // Printed before the gRPC address, which scripts wait for as the ready line.
-        println!("metrics on {}", listener.local_addr()?);
+    let mut server = tokio::spawn(server);
+    if let Some(listener) = bound.metrics {
+        let (sessions, metrics) = (state.sessions.clone(), state.metrics.clone());
+        let scrape: metrics::Scrape = Arc::new(move || metrics.encode(sessions.len()));
         tokio::spawn(metrics::serve(
             listener,
-            state.clone(),
-            limits,
-            shutdown.clone(),
+            scrape,
+            bound.limits,
+            cancel.clone(),
         ));
     }
-    println!("listening on {addr}");
-    tracing::info!(%addr, bundles = %config.bundles.display(), "listening");
-
     tokio::spawn({
-        let shutdown = shutdown.clone();
-        let set_health = set_health.clone();
+        let (cancel, health) = (cancel.clone(), health.clone());
         async move {
-            termination_signal().await;
+            shutdown.await;
             tracing::info!("shutdown requested: draining");
             // Health first, so watchers and load balancers see NOT_SERVING before streams end.
-            set_health(ServingStatus::NotServing).await;
-            shutdown.cancel();
+            health.set(ServingStatus::NotServing).await;
+            cancel.cancel();
         }
     });
+    let metrics = state.metrics.clone();
+    let _evictor = state
+        .sessions
+        .start_evictor(move |evicted| metrics.evicted(evicted));
 
     let dir = config.bundles.clone();
     let load = tokio::task::spawn_blocking(move || Registry::load_dir(&dir));
     let loaded = tokio::select! {
         loaded = load => loaded?,
-        _ = shutdown.cancelled() => {
+        _ = cancel.cancelled() => {
             // Stopped before the bundles loaded: no session exists, only the listener to close.
             let _ = tokio::time::timeout(config.drain_timeout, &mut server).await;
             return Ok(());
         }
     };
-    let loaded = match loaded {
-        Ok(loaded) => loaded,
-        Err(e) => {
-            shutdown.cancel();
-            return Err(e).with_context(|| {
-                format!("cannot read bundle directory {}", config.bundles.display())
-            });
+    if let Err(e) = install_bundles(&state, config, &health, loaded).await {
+        cancel.cancel();
+        return Err(e);
+    }
+    #[cfg(unix)]
+    let reloader = tokio::spawn(reload_on_hangup(
+        state.clone(),
+        config.bundles.clone(),
+        health.clone(),
+    ));
+    #[cfg(not(unix))]
+    let reloader = tokio::spawn(async {});
+
+    tokio::select! {
+        result = &mut server => {
+            reloader.abort();
+            return result.context("server failed");
         }
-    };
+        _ = cancel.cancelled() => {}
+    }
+    reloader.abort();
+    match tokio::time::timeout(config.drain_timeout, &mut server).await {
+        Ok(result) => {
+            result.context("server failed")?;
+            tracing::info!("drained; bye");
+        }
+        Err(_) => {
+            server.abort();
+            tracing::warn!(
+                timeout = ?config.drain_timeout,
+                "drain timeout passed with connections still open; exiting anyway"
+            );
+        }
+    }
+    Ok(())
+}
+
+/// What the handlers share, before any bundle is loaded.
+fn server_state(
+    config: &ServeConfig,
+    auth: Option<auth::Tokens>,
+    cancel: CancellationToken,
+) -> Arc<ServerState> {
+    Arc::new(ServerState {
+        registry: RwLock::new(None),
+        sessions: Arc::new(Sessions::new(config.max_sessions, config.session_ttl)),
+        max_horizon_limit: config.max_horizon_limit,
+        max_message_bytes: config.max_message_bytes,
+        shutdown: cancel,
+        batcher: config.batch.map(batch::Batcher::start),
+        auth,
+        metrics: Arc::new(metrics::Metrics::default()),
+    })
+}
+
+/// Puts the first load of the bundle directory in service: SERVING when it holds a policy.
+async fn install_bundles(
+    state: &ServerState,
+    config: &ServeConfig,
+    health: &Health,
+    loaded: std::io::Result<registry::Loaded>,
+) -> anyhow::Result<()> {
+    let loaded = loaded
+        .with_context(|| format!("cannot read bundle directory {}", config.bundles.display()))?;
     for error in &loaded.errors {
         tracing::error!(%error, "skipping bad bundle");
     }
     if config.strict && !loaded.errors.is_empty() {
-        shutdown.cancel();
         anyhow::bail!(
             "{} bad bundle(s) and --strict: {}",
             loaded.errors.len(),
@@ -294,60 +375,16 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
     *state.registry.write().unwrap_or_else(|p| p.into_inner()) = Some(Arc::new(loaded.registry));
     if count == 0 {
         tracing::warn!(dir = %config.bundles.display(), "no bundles loaded; health stays NOT_SERVING");
-    } else if !shutdown.is_cancelled() {
-        set_health(ServingStatus::Serving).await;
+    } else if !state.shutdown.is_cancelled() {
+        health.set(ServingStatus::Serving).await;
         // A signal that came in meanwhile has set NOT_SERVING already: restore it.
-        if shutdown.is_cancelled() {
-            set_health(ServingStatus::NotServing).await;
+        if state.shutdown.is_cancelled() {
+            health.set(ServingStatus::NotServing).await;
         }
         tracing::info!(policies = count, "serving");
     }
-
-    #[cfg(unix)]
-    let reloader = tokio::spawn(reload_on_hangup(
-        state.clone(),
-        config.bundles.clone(),
-        set_health.clone(),
-    ));
-    #[cfg(not(unix))]
-    let reloader = tokio::spawn(async {});
-
-    let evictor = tokio::spawn({
-        let state = state.clone();
-        let period =
-            (config.session_ttl / 4).clamp(Duration::from_millis(10), Duration::from_secs(1));
-        async move {
-            let mut tick = tokio::time::interval(period);
-            loop {
-                tick.tick().await;
-                let evicted = state.sessions.evict_idle();
-                state.metrics.evicted(evicted);
-            }
-        }
-    });
-
-    tokio::select! {
-        result = &mut server => {
-            evictor.abort();
-            reloader.abort();
-            return result?.context("server failed");
-        }
-        _ = shutdown.cancelled() => {}
-    }
-    evictor.abort();
-    reloader.abort();
-    match tokio::time::timeout(config.drain_timeout, &mut server).await {
-        Ok(result) => {
-            result?.context("server failed")?;
-            tracing::info!("drained; bye");
-        }
-        Err(_) => {
-            server.abort();
-            tracing::warn!(
-                timeout = ?config.drain_timeout,
-                "drain timeout passed with connections still open; exiting anyway"
-            );
-        }
-    }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests;

@@ -8,37 +8,37 @@ use crate::bundle::{self, BundleError};
 use crate::policy::Policy;
 
 #[derive(Default, Clone)]
-pub struct Registry {
+pub(super) struct Registry {
     policies: BTreeMap<String, Arc<Policy>>,
 }
 
 /// The bundles of a directory that loaded, and the errors of those that did not.
-pub struct Loaded {
+pub(super) struct Loaded {
     pub registry: Registry,
     pub errors: Vec<BundleError>,
 }
 
 impl Registry {
-    pub fn get(&self, name: &str) -> Option<&Arc<Policy>> {
+    pub(super) fn get(&self, name: &str) -> Option<&Arc<Policy>> {
         self.policies.get(name)
     }
-    pub fn iter(&self) -> impl Iterator<Item = (&String, &Arc<Policy>)> {
+    pub(super) fn iter(&self) -> impl Iterator<Item = (&String, &Arc<Policy>)> {
         self.policies.iter()
     }
-    pub fn len(&self) -> usize {
+    pub(super) fn len(&self) -> usize {
         self.policies.len()
     }
-    pub fn is_empty(&self) -> bool {
+    pub(super) fn is_empty(&self) -> bool {
         self.policies.is_empty()
     }
-    pub fn names(&self) -> Vec<&str> {
+    pub(super) fn names(&self) -> Vec<&str> {
         self.policies.keys().map(String::as_str).collect()
     }
 
     /// Loads every `*.safetensors` entry of `dir` (not recursive). A bad bundle is reported in
     /// `errors` and skipped, and so is an entry that is not a regular file (a directory, FIFO,
     /// device or dangling link); an unreadable directory is an error.
-    pub fn load_dir(dir: &Path) -> std::io::Result<Loaded> {
+    pub(super) fn load_dir(dir: &Path) -> std::io::Result<Loaded> {
         let mut files: Vec<_> = std::fs::read_dir(dir)?
             .filter_map(Result::ok)
             .map(|e| e.path())
@@ -92,7 +92,7 @@ impl Registry {
     /// its loaded policy (same `Arc`), a changed or new file that loads replaces or adds its
     /// policy, a file that no longer loads keeps the old version, and a removed file leaves the
     /// registry. Open sessions hold their own `Arc` and are not affected.
-    pub fn reload(&self, dir: &Path) -> std::io::Result<(Registry, ReloadReport)> {
+    pub(super) fn reload(&self, dir: &Path) -> std::io::Result<(Registry, ReloadReport)> {
         let Loaded {
             registry: fresh,
             errors,
@@ -139,7 +139,7 @@ impl Registry {
 
 /// What a reload changed, by policy name.
 #[derive(Debug, Default)]
-pub struct ReloadReport {
+pub(super) struct ReloadReport {
     pub added: Vec<String>,
     pub replaced: Vec<String>,
     pub unchanged: Vec<String>,

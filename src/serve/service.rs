@@ -1,7 +1,6 @@
 //! The `prac.v1.Prac` gRPC service.
 
 use std::cell::RefCell;
-use std::collections::HashMap;
 use std::pin::Pin;
 use std::sync::{Arc, RwLock};
 use std::time::Instant;
@@ -20,15 +19,16 @@ use super::registry::Registry;
 use super::session::{
     Session, SessionError, SessionSettings, SessionSlot, Sessions, StepError, new_session_id,
 };
-use crate::plan::ReplanScratch;
-use crate::policy::{Evaluator, Policy};
+use super::workspace::{Workspace, Workspaces};
+use crate::plan::MAX_CHUNK;
+use crate::policy::Policy;
 use crate::proto::{self, prac_server::Prac};
 
 /// What the handlers share.
-pub struct ServerState {
+pub(super) struct ServerState {
     /// None until the bundles are loaded.
     pub registry: RwLock<Option<Arc<Registry>>>,
-    pub sessions: Sessions,
+    pub sessions: Arc<Sessions>,
     pub max_horizon_limit: usize,
     /// Largest message; sessions whose plans could not fit a response are refused.
     pub max_message_bytes: usize,
@@ -38,7 +38,7 @@ pub struct ServerState {
     pub batcher: Option<Batcher>,
     /// Bearer tokens; None when auth is off.
     pub auth: Option<super::auth::Tokens>,
-    pub metrics: super::metrics::Metrics,
+    pub metrics: Arc<super::metrics::Metrics>,
 }
 
 impl From<SessionError> for Status {
@@ -87,7 +87,7 @@ fn shutting_down() -> Status {
     Status::unavailable("the server is shutting down; reconnect and resume on a running server")
 }
 
-pub fn policy_info(name: &str, policy: &Policy) -> proto::PolicyInfo {
+pub(super) fn policy_info(name: &str, policy: &Policy) -> proto::PolicyInfo {
     let m = &policy.manifest;
     proto::PolicyInfo {
         name: name.to_string(),
@@ -241,26 +241,13 @@ impl ServerState {
             },
             None => None,
         };
-        // Alone or without batching, each thread keeps one evaluator per policy for the sessions it
-        // serves: memory grows with threads, not sessions.
+        // Alone or without batching, each thread keeps one workspace per policy for the sessions
+        // it serves.
         thread_local! {
-            static INLINE: RefCell<HashMap<*const Policy, (Evaluator, ReplanScratch)>> =
-                RefCell::new(HashMap::new());
+            static INLINE: RefCell<Workspaces> = RefCell::new(Workspaces::new(MAX_CHUNK, 1));
         }
         INLINE.with_borrow_mut(|inline| {
-            if !inline.contains_key(&Arc::as_ptr(&slot.policy)) {
-                // Policies replaced by a reload, whose sessions are all gone: only we hold them.
-                inline.retain(|_, (e, _)| Arc::strong_count(e.policy()) > 1);
-            }
-            let (evaluator, scratch) =
-                inline.entry(Arc::as_ptr(&slot.policy)).or_insert_with(|| {
-                    let policy = slot.policy.clone();
-                    let (od, ad) = (policy.obs_dim(), policy.act_dim());
-                    (
-                        Evaluator::for_sessions(policy, 1),
-                        ReplanScratch::new(od, ad),
-                    )
-                });
+            let Workspace { evaluator, scratch } = inline.get(&slot.policy);
             let mut session = slot.lock();
             let report = session.step(
                 evaluator,
@@ -295,7 +282,7 @@ impl TakeBack {
 }
 
 #[derive(Clone)]
-pub struct PracService {
+pub(super) struct PracService {
     pub state: Arc<ServerState>,
 }
 

@@ -4,7 +4,10 @@
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
-use std::time::{Duration, Instant, SystemTime};
+use std::time::{Duration, SystemTime};
+
+// tokio's clock, so that tests can pause and advance it.
+use tokio::time::Instant;
 
 use rand::{RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -20,7 +23,7 @@ use crate::proto;
 
 /// Largest step index or episode counter a resumed plan may carry: 2^53 - 1, the largest integer
 /// every client (a JSON number, a Python float) holds exactly. Counting on from it cannot wrap.
-pub const MAX_COUNTER: u64 = (1 << 53) - 1;
+pub(crate) const MAX_COUNTER: u64 = (1 << 53) - 1;
 
 /// Resolved per-session options.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -477,7 +480,7 @@ impl Session {
 }
 
 /// A 128-bit random session id in hex, from the OS-seeded CSPRNG.
-pub fn new_session_id() -> String {
+pub(crate) fn new_session_id() -> String {
     let mut bytes = [0u8; 16];
     rand::rng().fill_bytes(&mut bytes);
     hex::encode(bytes)
@@ -506,7 +509,7 @@ pub enum SessionError {
     NotOwner(String),
 }
 
-pub struct SessionSlot {
+pub(crate) struct SessionSlot {
     /// The session's policy (also in the session), readable without the lock.
     pub policy: Arc<Policy>,
     pub owner: Option<String>,
@@ -520,7 +523,7 @@ pub struct SessionSlot {
 }
 
 /// Marks a session in use from [`Sessions::get`] until dropped; then its idle time starts.
-pub struct InUse {
+pub(crate) struct InUse {
     slot: Arc<SessionSlot>,
     epoch: Instant,
 }
@@ -544,7 +547,7 @@ impl Drop for InUse {
 
 impl SessionSlot {
     /// Locks the session (a panic elsewhere cannot wedge it: poisoning is ignored).
-    pub fn lock(&self) -> MutexGuard<'_, Session> {
+    pub(crate) fn lock(&self) -> MutexGuard<'_, Session> {
         self.session.lock().unwrap_or_else(|p| p.into_inner())
     }
 }
@@ -566,7 +569,16 @@ struct Tombstones {
 /// server by about 0.5 MB a minute towards a 13 MB plateau; 4,096 reaches its plateau in minutes.
 const MAX_TOMBSTONES: usize = 4_096;
 
-pub struct Sessions {
+/// Stops the evictor of [`Sessions::start_evictor`] when dropped.
+pub(crate) struct Evictor(tokio::task::JoinHandle<()>);
+
+impl Drop for Evictor {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
+pub(crate) struct Sessions {
     slots: Mutex<HashMap<String, Arc<SessionSlot>>>,
     tombstones: Mutex<Tombstones>,
     max_sessions: usize,
@@ -584,7 +596,7 @@ fn shown(id: &str) -> String {
 }
 
 impl Sessions {
-    pub fn new(max_sessions: usize, ttl: Duration) -> Sessions {
+    pub(crate) fn new(max_sessions: usize, ttl: Duration) -> Sessions {
         Sessions {
             slots: Mutex::new(HashMap::new()),
             tombstones: Mutex::new(Tombstones {
@@ -605,17 +617,11 @@ impl Sessions {
         self.slots.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    pub fn len(&self) -> usize {
+    pub(crate) fn len(&self) -> usize {
         self.slots().len()
     }
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-    pub fn ttl(&self) -> Duration {
-        self.ttl
-    }
 
-    pub fn insert(
+    pub(crate) fn insert(
         &self,
         session: Session,
         steps_served: prometheus_client::metrics::counter::Counter,
@@ -640,7 +646,7 @@ impl Sessions {
     }
 
     /// The live session with this id, in use until the guard drops, if `caller` owns it.
-    pub fn get(&self, id: &str, caller: Option<&str>) -> Result<InUse, SessionError> {
+    pub(crate) fn get(&self, id: &str, caller: Option<&str>) -> Result<InUse, SessionError> {
         // Marked in use under the map's lock, so the evictor cannot take it in between.
         let slots = self.slots();
         match slots.get(id) {
@@ -688,7 +694,11 @@ impl Sessions {
         t.ended.insert(id, ended);
     }
 
-    pub fn close(&self, id: &str, caller: Option<&str>) -> Result<Arc<SessionSlot>, SessionError> {
+    pub(crate) fn close(
+        &self,
+        id: &str,
+        caller: Option<&str>,
+    ) -> Result<Arc<SessionSlot>, SessionError> {
         let removed = {
             let mut slots = self.slots();
             match slots.get(id) {
@@ -713,9 +723,29 @@ impl Sessions {
         }
     }
 
+    /// Evicts idle sessions every quarter of the TTL (10 ms to 1 s) until the returned guard is
+    /// dropped, telling `on_evicted` how many went each time.
+    pub(crate) fn start_evictor(
+        self: &Arc<Self>,
+        on_evicted: impl Fn(usize) + Send + 'static,
+    ) -> Evictor {
+        let sessions = Arc::downgrade(self);
+        let period = (self.ttl / 4).clamp(Duration::from_millis(10), Duration::from_secs(1));
+        Evictor(tokio::spawn(async move {
+            let mut tick = tokio::time::interval(period);
+            loop {
+                tick.tick().await;
+                let Some(sessions) = sessions.upgrade() else {
+                    return;
+                };
+                on_evicted(sessions.evict_idle());
+            }
+        }))
+    }
+
     /// Removes every session idle for longer than the TTL; returns how many. Idle time starts
     /// when a request ends: a session with a request in flight is never idle.
-    pub fn evict_idle(&self) -> usize {
+    pub(crate) fn evict_idle(&self) -> usize {
         let ttl_ms = self.ttl.as_millis() as u64;
         let expired: Vec<(String, u64)> = {
             let mut slots = self.slots();
@@ -754,10 +784,10 @@ impl Sessions {
 mod tests {
     use super::*;
     use crate::bundle::ValueScale;
-    use crate::policy::test_manifest;
+    use crate::testing::test_manifest;
 
     fn policy() -> Arc<Policy> {
-        Arc::new(Policy::random(
+        Arc::new(crate::testing::random_policy(
             test_manifest("toy", "toy", 3, 2, &[16, 16], &[8, 8]),
             5,
         ))
@@ -826,14 +856,14 @@ mod tests {
         assert_eq!(step(&mut s, late).unwrap().step, 1);
     }
 
-    #[test]
-    fn a_session_in_use_never_expires_and_idles_from_its_last_use() {
+    #[tokio::test(start_paused = true)]
+    async fn a_session_in_use_never_expires_and_idles_from_its_last_use() {
         let sessions = Sessions::new(8, Duration::from_millis(30));
         let policy = policy();
         let s = session(&policy, Default::default());
         sessions.insert(s, Default::default()).unwrap();
         let in_use = sessions.get("s", None).unwrap();
-        std::thread::sleep(Duration::from_millis(80));
+        tokio::time::advance(Duration::from_millis(80)).await;
         assert_eq!(sessions.evict_idle(), 0, "evicted while a request used it");
         drop(in_use);
         assert_eq!(
@@ -841,7 +871,7 @@ mod tests {
             0,
             "idle time must start when the request ends"
         );
-        std::thread::sleep(Duration::from_millis(80));
+        tokio::time::advance(Duration::from_millis(80)).await;
         assert_eq!(sessions.evict_idle(), 1);
         assert!(matches!(
             sessions.get("s", None),

@@ -50,7 +50,7 @@ pub struct Limits {
 
 /// Receive window of one stream. A StepStream whose client stops reading its responses stalls
 /// once this much of its requests is buffered: about 300 Hopper steps.
-pub const STREAM_WINDOW: u32 = 32 * 1024;
+pub(super) const STREAM_WINDOW: u32 = 32 * 1024;
 
 /// The connection's receive window: every stream's window at once, times 8. h2 closes a
 /// connection whose buffered small DATA frames cost more framing than half this window; at 8x
@@ -67,7 +67,7 @@ const MAX_HEADER_LIST_BYTES: u32 = 16 * 1024;
 
 /// Connection counts, for the metrics and logs.
 #[derive(Debug, Default)]
-pub struct ConnectionStats {
+pub(super) struct ConnectionStats {
     pub open: AtomicU64,
     pub refused_at_cap: AtomicU64,
     pub handshake_timeouts: AtomicU64,
@@ -78,7 +78,7 @@ pub struct ConnectionStats {
 
 /// The most connections the process's file-descriptor limit allows with room to spare for
 /// bundles, logs and the metrics listener; `wanted` if that is lower.
-pub fn connection_cap(wanted: usize) -> usize {
+pub(super) fn connection_cap(wanted: usize) -> usize {
     const RESERVE: u64 = 64;
     let mut limit = libc_rlimit_nofile().unwrap_or(u64::MAX);
     limit = limit.saturating_sub(RESERVE).max(1);
@@ -127,7 +127,7 @@ impl RateLimitedLog {
 
 /// Accepts connections until `shutdown`, at most `cap` open at once, handing each to `serve`
 /// with the permit that counts it. Accept errors back off from 5 ms to 1 s.
-pub async fn accept_loop<F>(
+pub(super) async fn accept_loop<F>(
     listener: TcpListener,
     cap: usize,
     stats: Arc<ConnectionStats>,
@@ -176,7 +176,7 @@ pub async fn accept_loop<F>(
 
 /// Serves gRPC on `listener` until `shutdown`, then closes every connection gracefully (GOAWAY;
 /// calls in flight finish) and returns when all are closed.
-pub async fn serve_grpc(
+pub(super) async fn serve_grpc(
     listener: TcpListener,
     tls: Option<TlsAcceptor>,
     routes: Routes,
@@ -441,7 +441,7 @@ impl HttpBody for TrackedBody {
 }
 
 /// A TLS acceptor for HTTP/2 from a PEM certificate chain and key (rustls with ring).
-pub fn tls_acceptor(cert_pem: &[u8], key_pem: &[u8]) -> anyhow::Result<TlsAcceptor> {
+pub(super) fn tls_acceptor(cert_pem: &[u8], key_pem: &[u8]) -> anyhow::Result<TlsAcceptor> {
     use anyhow::Context as _;
     use tokio_rustls::rustls;
     use tokio_rustls::rustls::pki_types::pem::PemObject;
