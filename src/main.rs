@@ -77,7 +77,8 @@ enum Command {
         epsilon_coef: f64,
         #[arg(long, default_value_t = 800)]
         width: u32,
-        #[arg(long, default_value_t = 500)]
+        /// Picture height; with --policy the lower third shows the committed actions.
+        #[arg(long, default_value_t = 640)]
         height: u32,
     },
     /// Train a policy with SAC and a dynamics model (Algorithm 1) and write a bundle.

@@ -134,3 +134,53 @@ fn a_tolerance_without_a_policy_is_refused() {
     assert!(!run.status.success());
     assert!(String::from_utf8_lossy(&run.stderr).contains("--policy"));
 }
+
+#[test]
+fn the_3d_robots_colour_their_limbs_by_side_and_the_lander_fits_its_view() {
+    use prac::domains::Part;
+    for domain in ["ant", "humanoid"] {
+        let mut env = prac::domains::make(domain).unwrap();
+        let mut obs = vec![0.0f32; env.spec().obs_dim];
+        env.reset(1, &mut obs).unwrap();
+        let parts: Vec<Part> = env.scene().shapes.iter().map(|(p, _)| *p).collect();
+        for side in [Part::Left, Part::Right, Part::Body] {
+            assert!(parts.contains(&side), "{domain} draws no {side:?} part");
+        }
+        let left = parts.iter().filter(|p| **p == Part::Left).count();
+        let right = parts.iter().filter(|p| **p == Part::Right).count();
+        assert_eq!(
+            left, right,
+            "{domain}: a symmetric robot has as many limbs on each side"
+        );
+    }
+    // The lander starts at the top of its viewport: the view leaves room above it.
+    let mut lander = prac::domains::make("lander").unwrap();
+    let mut obs = vec![0.0f32; 8];
+    lander.reset(3, &mut obs).unwrap();
+    let scene = lander.scene();
+    let top = scene.center.1 + scene.height / 2.0;
+    let lander_y = lander.trace(&obs)[0].1;
+    assert!(lander_y + 1.0 < top, "lander at {lander_y}, view top {top}");
+}
+
+#[test]
+fn a_policy_picture_has_the_asked_size_with_its_forecast_panel() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("hopper.png");
+    let bundle =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("bundles/hopper.safetensors");
+    let run = Command::new(env!("CARGO_BIN_EXE_prac"))
+        .args(["render", "hopper", "--seed", "3", "--steps", "20"])
+        .arg("--policy")
+        .arg(&bundle)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    assert_eq!(png_size(&std::fs::read(&out).unwrap()), (800, 640));
+}

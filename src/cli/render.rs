@@ -10,6 +10,7 @@ use rand_chacha::ChaCha8Rng;
 use crate::domains;
 use crate::plan::{Planner, ReplanConfig};
 use crate::policy::Evaluator;
+use crate::render::Forecast;
 
 pub struct RenderRequest<'a> {
     pub domain: &'a str,
@@ -34,8 +35,8 @@ pub fn run(req: &RenderRequest<'_>) -> anyhow::Result<usize> {
     let spec = env.spec().clone();
     let mut obs = vec![0.0; spec.obs_dim];
     env.reset(req.seed, &mut obs)?;
-    let mut trace = Vec::new();
-    let mut caption = format!("{} | seed {}", req.domain, req.seed);
+    let mut title = format!("{} | seed {}", req.domain, req.seed);
+    let mut committed = None;
     if let Some(path) = req.policy {
         let policy = Arc::new(crate::bundle::load(path)?);
         if policy.manifest.domain != req.domain {
@@ -75,18 +76,27 @@ pub fn run(req: &RenderRequest<'_>) -> anyhow::Result<usize> {
                 bail!("the episode ended at step {}; ask for fewer --steps", t + 1);
             }
         }
-        let current = planner.plan();
-        let predicted: Vec<f32> = (0..current.len())
-            .flat_map(|i| current.next_obs(i).to_vec())
+        let plan = planner.plan();
+        let predicted: Vec<f32> = (0..plan.len())
+            .flat_map(|i| plan.next_obs(i).to_vec())
             .collect();
-        trace = env.trace(&predicted);
-        caption = format!(
-            "{caption} | {} after {} steps | plan of {} (eps coef {})",
+        let actions: Vec<Vec<f32>> = (0..plan.len())
+            .map(|i| {
+                policy.unscale_action(plan.action(i), &mut action);
+                action.clone()
+            })
+            .collect();
+        let decided_at: Vec<u64> = (0..plan.len()).map(|i| plan.decided_at(i)).collect();
+        title = format!(
+            "{} | policy {} | seed {} | eps coef {} | step {} | plan of {}",
+            req.domain,
             policy.manifest.name,
+            req.seed,
+            req.epsilon_coef,
             req.steps,
-            current.len(),
-            req.epsilon_coef
+            plan.len()
         );
+        committed = Some((env.trace(&predicted), actions, decided_at));
     } else if req.steps > 0 {
         let mut rng = ChaCha8Rng::seed_from_u64(req.seed);
         let mut action = vec![0.0; spec.act_dim];
@@ -99,8 +109,32 @@ pub fn run(req: &RenderRequest<'_>) -> anyhow::Result<usize> {
                 bail!("the episode ended at step {}; ask for fewer --steps", t + 1);
             }
         }
-        caption = format!("{caption} | {} random steps", req.steps);
+        title = format!("{title} | {} random steps", req.steps);
     }
-    crate::render::render_scene(&env.scene(), &trace, &caption, req.out, req.size)?;
-    Ok(trace.len())
+    let forecast = committed
+        .as_ref()
+        .map(|(trace, actions, decided_at)| Forecast {
+            trace,
+            actions,
+            decided_at,
+            step: u64::from(req.steps),
+            action_range: action_range(&spec),
+        });
+    crate::render::render_scene(&env.scene(), forecast.as_ref(), &title, req.out, req.size)?;
+    Ok(committed.map_or(0, |(trace, _, _)| trace.len()))
+}
+
+/// The lowest and highest action bound over the dimensions.
+pub fn action_range(spec: &domains::EnvSpec) -> (f32, f32) {
+    let lo = spec
+        .action_low
+        .iter()
+        .copied()
+        .fold(f32::INFINITY, f32::min);
+    let hi = spec
+        .action_high
+        .iter()
+        .copied()
+        .fold(f32::NEG_INFINITY, f32::max);
+    (lo, hi)
 }

@@ -360,9 +360,10 @@ impl Env for Lander {
         }
         super::Scene {
             shapes,
-            center: (f64::from(W) / 2.0, f64::from(H) / 2.0),
+            // A margin above the viewport: the lander starts at its top edge.
+            center: (f64::from(W) / 2.0, f64::from(H) * 0.55),
             width: f64::from(W),
-            height: f64::from(H),
+            height: f64::from(H) * 1.1,
         }
     }
 

@@ -62,11 +62,12 @@ impl Env for Pendulum {
         let tip = (L * self.theta.sin(), L * self.theta.cos());
         super::Scene {
             shapes: vec![
-                (super::Part::Ground, super::Shape::Circle((0.0, 0.0), 0.05)),
                 (
                     super::Part::Body,
                     super::Shape::Capsule((0.0, 0.0), tip, 0.08),
                 ),
+                // The pivot, drawn over the rod.
+                (super::Part::Detail, super::Shape::Circle((0.0, 0.0), 0.05)),
             ],
             center: (0.0, 0.0),
             width: 2.6,

@@ -5,8 +5,11 @@ use rapier2d::prelude::*;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Part {
-    /// The robot (or lander, or pendulum).
+    /// The robot (or lander, or pendulum); a 3D robot's torso and middle.
     Body,
+    /// A 3D robot's limbs on its left and right sides (seen from its torso).
+    Left,
+    Right,
     /// Terrain and floor.
     Ground,
     /// Markers such as the helipad flags.

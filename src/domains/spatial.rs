@@ -18,6 +18,9 @@ use super::walker_base::{
 };
 use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, wrap_angle};
 
+/// A limb whose centre is this far (metres) to one side of the torso is drawn in that side's
+/// colour.
+const SIDE: f32 = 0.03;
 /// PyBullet's stadium floor friction (0.8), multiplied by the geom's as Bullet combines them.
 const FLOOR_FRICTION: f32 = 0.8;
 /// Links that only chain several hinges of one MuJoCo body: no shape, a token mass so the link
@@ -667,9 +670,16 @@ impl Env for Spatial {
                 ]),
             ));
         }
-        // Far links first, so nearer ones are drawn over them.
-        let mut parts: Vec<(f32, Shape)> = Vec::new();
+        // Far links first, so nearer ones are drawn over them; limbs coloured by the side of the
+        // torso they are on.
+        let torso_pose = *self.torso().position();
+        let mut parts: Vec<(f32, Part, Shape)> = Vec::new();
         for handles in &self.colliders {
+            let side = |centre: Vector| match torso_pose.inverse_transform_point(centre).y {
+                y if y > SIDE => Part::Left,
+                y if y < -SIDE => Part::Right,
+                _ => Part::Body,
+            };
             for &h in handles {
                 let collider = &self.world.colliders[h];
                 let pose = collider.position();
@@ -680,18 +690,19 @@ impl Env for Spatial {
                             pose.transform_point(c.segment.b),
                         );
                         let shape = Shape::Capsule(project(a), project(b), f64::from(c.radius));
-                        parts.push((a.y.max(b.y), shape));
+                        parts.push((a.y.max(b.y), side((a + b) * 0.5), shape));
                     }
                     TypedShape::Ball(b) => {
                         let c = pose.transform_point(Vector::ZERO);
-                        parts.push((c.y, Shape::Circle(project(c), f64::from(b.radius))));
+                        let shape = Shape::Circle(project(c), f64::from(b.radius));
+                        parts.push((c.y, side(c), shape));
                     }
                     _ => {}
                 }
             }
         }
         parts.sort_by(|a, b| b.0.total_cmp(&a.0));
-        shapes.extend(parts.into_iter().map(|(_, s)| (Part::Body, s)));
+        shapes.extend(parts.into_iter().map(|(_, part, s)| (part, s)));
         let (cx, cy) = project(v(centre.x, centre.y, 0.0));
         Scene {
             shapes,

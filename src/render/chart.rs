@@ -23,7 +23,7 @@ pub struct Panel {
 
 /// Twelve distinct colours (matplotlib's tab10, then black and a dark magenta), so that a
 /// Figure 4 with three seeds of four settings repeats none.
-fn color(i: usize) -> RGBColor {
+pub(crate) fn color(i: usize) -> RGBColor {
     const PALETTE: [RGBColor; 12] = [
         RGBColor(31, 119, 180),
         RGBColor(214, 39, 40),

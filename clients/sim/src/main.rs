@@ -194,8 +194,14 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
                     play::render(
                         &snap,
                         &format!(
-                            "{} | step {} | plan of {}",
+                            "{} | policy {} | seed {} | {} | step {} | plan of {}",
+                            info.domain,
                             info.name,
+                            seed + k,
+                            match tol {
+                                Tol::Coef(c) => format!("eps coef {c}"),
+                                Tol::Absolute(e) => format!("eps {e}"),
+                            },
                             snap.step,
                             snap.trace.len()
                         ),

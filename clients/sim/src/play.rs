@@ -43,10 +43,14 @@ pub struct EpisodeResult {
     pub commitment_violations: u64,
 }
 
-/// A frame to draw: the state after `step` steps and the committed predicted observations.
+/// A frame to draw: the state after `step` steps, and the server's forecast there: the
+/// committed actions, the step each was decided at and the predicted observations as points.
 pub struct Snapshot {
     pub scene: prac::domains::Scene,
     pub trace: Vec<(f64, f64)>,
+    pub actions: Vec<Vec<f32>>,
+    pub decided_at: Vec<u64>,
+    pub action_range: (f32, f32),
     pub step: u64,
 }
 
@@ -154,6 +158,9 @@ pub async fn play_episode(
             snapshot = Some(Snapshot {
                 scene: env.scene(),
                 trace: env.trace(&predicted),
+                actions: response.forecast.iter().map(|p| p.action.clone()).collect(),
+                decided_at: response.forecast.iter().map(|p| p.decided_at).collect(),
+                action_range: prac::cli::render::action_range(&spec),
                 step: totals.steps,
             });
         }
@@ -178,7 +185,14 @@ pub async fn play_episode(
     Ok((result, snapshot))
 }
 
-/// Draws a snapshot with its plan.
-pub fn render(snapshot: &Snapshot, caption: &str, out: &Path) -> anyhow::Result<()> {
-    prac::render::render_scene(&snapshot.scene, &snapshot.trace, caption, out, (800, 500))
+/// Draws a snapshot with the server's forecast.
+pub fn render(snapshot: &Snapshot, title: &str, out: &Path) -> anyhow::Result<()> {
+    let forecast = prac::render::Forecast {
+        trace: &snapshot.trace,
+        actions: &snapshot.actions,
+        decided_at: &snapshot.decided_at,
+        step: snapshot.step,
+        action_range: snapshot.action_range,
+    };
+    prac::render::render_scene(&snapshot.scene, Some(&forecast), title, out, (800, 640))
 }
