@@ -2,6 +2,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
 
+use anyhow::Context;
 use clap::{Parser, Subcommand};
 
 use prac::serve::{ServeArgs, ServeConfig};
@@ -57,6 +58,10 @@ enum Command {
         /// Domains to measure [default: all].
         #[arg(long, value_delimiter = ',')]
         domains: Vec<String>,
+        /// Also write every row as JSON (episode lengths, falls, forward distance, reward terms
+        /// per step) to this file, as scripts/conformance reads it.
+        #[arg(long)]
+        json: Option<PathBuf>,
     },
     /// Draw a domain (side view) to a PNG, optionally with a policy's imagined plan overlaid.
     Render {
@@ -160,6 +165,7 @@ fn main() -> ExitCode {
             episodes,
             gamma,
             domains,
+            json,
         } => {
             let names: Vec<&str> = if domains.is_empty() {
                 prac::domains::DOMAINS.to_vec()
@@ -172,11 +178,16 @@ fn main() -> ExitCode {
                 episodes.max(1),
                 gamma,
             )
-            .map(|rows| {
+            .and_then(|rows| {
                 print!(
                     "{}",
                     prac::cli::domains::report(&rows, episodes.max(1), gamma)
-                )
+                );
+                match json {
+                    Some(path) => std::fs::write(&path, serde_json::to_string_pretty(&rows)?)
+                        .with_context(|| format!("writing {}", path.display())),
+                    None => Ok(()),
+                }
             })
         }
         Command::Render {

@@ -25,13 +25,24 @@ pub fn table() -> String {
     out
 }
 
+#[derive(serde::Serialize)]
 pub struct DomainBench {
     pub name: &'static str,
     pub steps_per_second: f64,
+    pub episodes: usize,
     pub mean_return: f64,
     pub std_return: f64,
     pub mean_discounted: f64,
     pub std_discounted: f64,
+    pub mean_length: f64,
+    pub std_length: f64,
+    /// Episodes the task ended (a fall) before the step limit.
+    pub terminated: usize,
+    /// How far the robot moved forward per episode (`Env::forward_position`), walkers only.
+    pub mean_distance: Option<f64>,
+    pub std_distance: Option<f64>,
+    /// Each reward term's mean per step over all episodes (`Env::reward_terms`).
+    pub reward_terms: Vec<(&'static str, f64)>,
 }
 
 /// Steps/s under uniform random actions on one thread (for `per_domain`), then the returns of
@@ -70,28 +81,60 @@ pub fn bench(
             }
         }
         let steps_per_second = steps as f64 / start.elapsed().as_secs_f64();
-        let (mut returns, mut discounted) = (Vec::new(), Vec::new());
+        let (mut returns, mut discounted, mut lengths) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut distances, mut terminated) = (Vec::new(), 0);
+        let mut term_sums: Vec<(&'static str, f64)> = Vec::new();
         for e in 0..episodes {
             env.reset(1_000_000 + e as u64, &mut obs)?;
+            let start = env.forward_position();
             let mut totals = EpisodeTotals::new(gamma);
             loop {
                 random(&mut rng, &mut action);
-                if totals.record(&env.step(&action, &mut obs)?, 1) {
+                let transition = env.step(&action, &mut obs)?;
+                for (k, &(name, value)) in env.reward_terms().iter().enumerate() {
+                    match term_sums.get_mut(k) {
+                        Some(sum) => sum.1 += value,
+                        None => term_sums.push((name, value)),
+                    }
+                }
+                if totals.record(&transition, 1) {
                     break;
                 }
             }
             returns.push(totals.ret);
             discounted.push(totals.discounted);
+            lengths.push(totals.steps as f64);
+            terminated += usize::from(totals.terminated);
+            distances.extend(crate::domains::forward_distance(start, env.as_ref()));
         }
         let (mean_return, std_return) = mean_std(&returns);
         let (mean_discounted, std_discounted) = mean_std(&discounted);
+        let (mean_length, std_length) = mean_std(&lengths);
+        let (mean_distance, std_distance) = match distances.is_empty() {
+            true => (None, None),
+            false => {
+                let (m, s) = mean_std(&distances);
+                (Some(m), Some(s))
+            }
+        };
+        let steps: f64 = lengths.iter().sum();
         rows.push(DomainBench {
             name: spec.name,
             steps_per_second,
+            episodes,
             mean_return,
             std_return,
             mean_discounted,
             std_discounted,
+            mean_length,
+            std_length,
+            terminated,
+            mean_distance,
+            std_distance,
+            reward_terms: term_sums
+                .into_iter()
+                .map(|(name, sum)| (name, sum / steps))
+                .collect(),
         });
     }
     Ok(rows)

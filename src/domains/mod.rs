@@ -88,6 +88,11 @@ pub trait Env: Send {
     fn forward_position(&self) -> Option<f64> {
         None
     }
+    /// The last step's reward split into named terms that sum to it (PyBullet's `rewards` list
+    /// for the walkers); empty for tasks that do not split it.
+    fn reward_terms(&self) -> &[(&'static str, f64)] {
+        &[]
+    }
 }
 
 /// How far the robot moved forward since it was at `start` (an earlier `forward_position`).

@@ -510,6 +510,10 @@ impl Env for Planar {
     }
 
     /// The torso's x, which the progress reward measures.
+    fn reward_terms(&self) -> &[(&'static str, f64)] {
+        self.episode.reward_terms()
+    }
+
     fn forward_position(&self) -> Option<f64> {
         Some(f64::from(self.torso().translation().x))
     }

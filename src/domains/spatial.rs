@@ -728,6 +728,10 @@ impl Env for Spatial {
     }
 
     /// PyBullet's body x (the parts' mean), which the progress reward measures.
+    fn reward_terms(&self) -> &[(&'static str, f64)] {
+        self.episode.reward_terms()
+    }
+
     fn forward_position(&self) -> Option<f64> {
         Some(f64::from(self.body_xyz().x))
     }

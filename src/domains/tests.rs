@@ -475,3 +475,35 @@ fn walkers_report_their_forward_position_and_the_others_none() {
         }
     }
 }
+
+#[test]
+fn the_walkers_reward_terms_sum_to_their_reward() {
+    for name in ["hopper", "walker", "cheetah", "ant", "humanoid"] {
+        let mut env = make(name).unwrap();
+        let (od, ad) = (env.spec().obs_dim, env.spec().act_dim);
+        let mut obs = vec![0.0; od];
+        env.reset(5, &mut obs).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        for _ in 0..50 {
+            let action: Vec<f32> = (0..ad).map(|_| rng.random_range(-1.0..=1.0)).collect();
+            let t = env.step(&action, &mut obs).unwrap();
+            let terms = env.reward_terms();
+            let names: Vec<&str> = terms.iter().map(|(n, _)| *n).collect();
+            assert_eq!(
+                names,
+                ["alive", "progress", "electricity", "joints_at_limit"],
+                "{name}"
+            );
+            let sum: f64 = terms.iter().map(|(_, v)| v).sum();
+            assert!(
+                (sum - t.reward).abs() < 1e-9,
+                "{name}: {sum} vs {}",
+                t.reward
+            );
+            if t.terminated || t.truncated {
+                break;
+            }
+        }
+    }
+    assert!(make("pendulum").unwrap().reward_terms().is_empty());
+}

@@ -47,7 +47,11 @@ pub(super) fn clip_observation(obs: &mut [f32]) {
 /// The reward's cost terms: electricity and stall (means over joints, times `cost_scale`, 4.25
 /// for PyBullet's Humanoid) and the joints-at-limit count. `joint_state` interleaves angles and
 /// speeds as [`joint_state`] gives them.
-pub(super) fn effort_costs(action: &[f32], joint_state: &[f32], cost_scale: f64) -> f64 {
+pub(super) fn effort_cost_terms(
+    action: &[f32],
+    joint_state: &[f32],
+    cost_scale: f64,
+) -> (f64, f64) {
     let n = action.len() as f64;
     let speeds = joint_state.iter().skip(1).step_by(2);
     let electricity = ELECTRICITY_COST
@@ -63,7 +67,10 @@ pub(super) fn effort_costs(action: &[f32], joint_state: &[f32], cost_scale: f64)
         .step_by(2)
         .filter(|q| q.abs() > 0.99)
         .count() as f64;
-    cost_scale * (electricity + stall) + JOINTS_AT_LIMIT_COST * at_limit
+    (
+        cost_scale * (electricity + stall),
+        JOINTS_AT_LIMIT_COST * at_limit,
+    )
 }
 
 /// A walker's task around its physics, the same in 2D and 3D: the action check, PyBullet's
@@ -78,7 +85,13 @@ pub(super) struct WalkerEpisode {
     episode_len: u32,
     /// Scales the electricity and stall costs (4.25 for PyBullet's Humanoid, else 1).
     cost_scale: f64,
+    /// The last step's reward by term, in PyBullet's order.
+    terms: [(&'static str, f64); 4],
 }
+
+/// Names of the reward terms, as PyBullet's `rewards` list holds them (without the feet
+/// collision cost, which PyBullet sets to 0).
+pub(super) const REWARD_TERMS: [&str; 4] = ["alive", "progress", "electricity", "joints_at_limit"];
 
 impl WalkerEpisode {
     pub(super) fn new(spec: &EnvSpec, cost_scale: f64) -> WalkerEpisode {
@@ -89,7 +102,13 @@ impl WalkerEpisode {
             over: true,
             episode_len: spec.episode_len,
             cost_scale,
+            terms: REWARD_TERMS.map(|name| (name, 0.0)),
         }
+    }
+
+    /// The last step's reward by term; they sum to its reward.
+    pub(super) fn reward_terms(&self) -> &[(&'static str, f64)] {
+        &self.terms
     }
 
     /// A new episode whose robot starts at `potential`.
@@ -133,7 +152,15 @@ impl WalkerEpisode {
     ) -> Transition {
         let progress = potential - self.potential;
         self.potential = potential;
-        let reward = alive + progress + effort_costs(&action, joint_state, self.cost_scale);
+        let (power, at_limit) = effort_cost_terms(&action, joint_state, self.cost_scale);
+        // Summed in this order, as before the terms were kept apart: the reward's bits stay.
+        let reward = alive + progress + (power + at_limit);
+        self.terms = [
+            (REWARD_TERMS[0], alive),
+            (REWARD_TERMS[1], progress),
+            (REWARD_TERMS[2], power),
+            (REWARD_TERMS[3], at_limit),
+        ];
         self.action = action;
         self.steps += 1;
         let terminated = falling_ends && alive < 0.0;
@@ -159,13 +186,11 @@ mod tests {
         let action = [0.5, -1.0];
         // electricity -2 x mean(|0.5 x 1|, |-1 x 0|) = -0.5; stall -0.1 x mean(0.25, 1) =
         // -0.0625; one joint at its limit: -0.1.
-        let costs = effort_costs(&action, &state, 1.0);
-        assert!((costs - (-0.5 - 0.0625 - 0.1)).abs() < 1e-12, "{costs}");
-        let scaled = effort_costs(&action, &state, 4.25);
-        assert!(
-            (scaled - (4.25 * (-0.5 - 0.0625) - 0.1)).abs() < 1e-12,
-            "{scaled}"
-        );
+        let (power, at_limit) = effort_cost_terms(&action, &state, 1.0);
+        assert!((power - (-0.5 - 0.0625)).abs() < 1e-12, "{power}");
+        assert_eq!(at_limit, -0.1);
+        let (scaled, _) = effort_cost_terms(&action, &state, 4.25);
+        assert!((scaled - 4.25 * (-0.5 - 0.0625)).abs() < 1e-12, "{scaled}");
     }
 
     #[test]
