@@ -121,6 +121,18 @@ fn parse_pair(text: &str) -> anyhow::Result<(f64, f64)> {
     Ok((a, b))
 }
 
+/// The policy's description, waiting for a starting server; a local server's own last words
+/// come with the error.
+async fn served_policy(
+    client: &mut play::Client,
+    policy: &str,
+    local: Option<&prac::client::local::LocalServer>,
+) -> anyhow::Result<prac::proto::PolicyInfo> {
+    prac::client::choose_policy(client, Some(policy), prac::client::POLICY_PATIENCE)
+        .await
+        .map_err(|e| with_server_log(e, local))
+}
+
 async fn run(cli: Cli) -> anyhow::Result<()> {
     if let Command::Curves {
         csv,
@@ -165,13 +177,7 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
             json,
         } => {
             anyhow::ensure!(*episodes >= 1, "--episodes must be >= 1");
-            let info = prac::client::choose_policy(
-                &mut client,
-                Some(policy),
-                prac::client::POLICY_PATIENCE,
-            )
-            .await
-            .map_err(|e| with_server_log(e, local.as_ref()))?;
+            let info = served_policy(&mut client, policy, local.as_ref()).await?;
             let tol = match (epsilon, epsilon_coef) {
                 (Some(e), _) => Tol::Absolute(*e),
                 (None, Some(c)) => Tol::Coef(*c),
@@ -255,13 +261,7 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
                 "--coefs must be >= 0"
             );
             anyhow::ensure!(*episodes >= 2, "--episodes must be >= 2");
-            let info = prac::client::choose_policy(
-                &mut client,
-                Some(policy),
-                prac::client::POLICY_PATIENCE,
-            )
-            .await
-            .map_err(|e| with_server_log(e, local.as_ref()))?;
+            let info = served_policy(&mut client, policy, local.as_ref()).await?;
             let result = sweep::run(&client, &info, coefs, *episodes, *seed, !cli.quiet).await?;
             sweep::write(&result, out)?;
             print!("{}", std::fs::read_to_string(out.join("sweep.md"))?);
