@@ -18,11 +18,10 @@ pub enum LogFormat {
 }
 
 /// Declares every setting once: its flag, its TOML key (the same name), its parser (shared by
-/// both) and its default, which the help text shows.
+/// both), its default and its help, which shows the default.
 macro_rules! settings {
     ($(
-        $(#[doc = $doc:literal])*
-        $name:ident: $ty:ty = $default:literal, $parse:expr;
+        $name:ident: $ty:ty = $default:literal, $parse:expr, $help:literal;
     )*) => {
         /// Flags of `prac serve`; each overrides the same key of the `--config` file.
         #[derive(Clone, Debug, Default, clap::Args)]
@@ -34,9 +33,8 @@ macro_rules! settings {
             #[arg(long)]
             pub strict: bool,
             $(
-                $(#[doc = $doc])*
-                #[doc = concat!("[default: ", $default, "]")]
-                #[arg(long, value_parser = $parse)]
+                #[doc = $help]
+                #[arg(long, value_parser = $parse, help = concat!($help, " [default: ", $default, "]"))]
                 pub $name: Option<$ty>,
             )*
         }
@@ -74,60 +72,61 @@ macro_rules! settings {
 }
 
 settings! {
-    /// Address to listen on, e.g. 127.0.0.1:50051, [::1]:50051 or localhost:50051; port 0 picks
-    /// a free port.
-    listen: SocketAddr = "127.0.0.1:50051", socket_address;
-    /// Directory of NAME.safetensors bundles, relative to the working directory.
-    bundles: PathBuf = "bundles", path;
-    /// Most sessions open at once.
-    max_sessions: usize = "1024", number::<usize>;
-    /// A session unused for this long is evicted, e.g. "5m".
-    session_ttl: Duration = "5m", duration;
-    /// Largest gRPC message accepted or sent, in bytes.
-    max_message_bytes: usize = "4194304", number::<usize>;
-    /// On SIGINT/SIGTERM, how long to wait for in-flight work before exiting.
-    drain_timeout: Duration = "10s", duration;
-    /// Log format on stderr: text or json.
-    log_format: LogFormat = "text", log_format;
-    /// Largest max_horizon, grow k or fixed n a session may ask for.
-    max_horizon_limit: usize = "256", number::<usize>;
-    /// Most steps replanned together across sessions; 0 turns batching off (each step is
-    /// replanned in its request handler).
-    batch_max: usize = "64", number::<usize>;
-    /// How long a batch worker waits for more steps after the first, e.g. "200us"; 0 takes only
-    /// what is already queued, adding no delay.
-    batch_window: Duration = "0s", duration;
-    /// Steps that may wait for a batch worker; more are refused with RESOURCE_EXHAUSTED.
-    batch_queue: usize = "4096", number::<usize>;
-    /// Batch worker threads.
-    batch_workers: usize = "2", number::<usize>;
-    /// File of bearer tokens, one per line: every prac.v1 call must carry
-    /// `authorization: Bearer TOKEN`, and a session belongs to the token that opened it; none
-    /// turns auth off.
-    auth_tokens: PathBuf = "none", path;
-    /// PEM certificate chain: serve TLS (with --tls-key); none serves plaintext.
-    tls_cert: PathBuf = "none", path;
-    /// PEM private key of --tls-cert.
-    tls_key: PathBuf = "none", path;
-    /// Serve Prometheus metrics over HTTP at ADDR/metrics, e.g. 127.0.0.1:9090; port 0 picks a
-    /// free port (printed as `metrics on ADDR`); none serves no metrics.
-    metrics_listen: SocketAddr = "none", socket_address;
-    /// Most client connections open at once; more are closed when accepted (lowered to fit the
-    /// open-file limit).
-    max_connections: usize = "1024", number::<usize>;
-    /// Most concurrent streams (calls) on one connection (HTTP/2
-    /// SETTINGS_MAX_CONCURRENT_STREAMS).
-    max_streams_per_connection: u32 = "256", number::<u32>;
-    /// A connection must finish its TLS handshake and send its first request within this, or it
-    /// is closed.
-    handshake_timeout: Duration = "10s", duration;
-    /// A connection with no call in flight for this long is closed with GOAWAY (clients
-    /// reconnect by themselves); 0s keeps idle connections.
-    idle_timeout: Duration = "10m", duration;
-    /// Interval of HTTP/2 PINGs to each client; 0s sends none.
-    keepalive_interval: Duration = "30s", duration;
-    /// A PING unanswered for this long closes the connection.
-    keepalive_timeout: Duration = "20s", duration;
+    listen: SocketAddr = "127.0.0.1:50051", socket_address,
+        "Address to listen on, e.g. 127.0.0.1:50051, [::1]:50051 or localhost:50051; port \
+        0 picks a free port.";
+    bundles: PathBuf = "bundles", path,
+        "Directory of NAME.safetensors bundles, relative to the working directory.";
+    max_sessions: usize = "1024", number::<usize>,
+        "Most sessions open at once.";
+    session_ttl: Duration = "5m", duration,
+        "A session unused for this long is evicted, e.g. \"5m\".";
+    max_message_bytes: usize = "4194304", number::<usize>,
+        "Largest gRPC message accepted or sent, in bytes.";
+    drain_timeout: Duration = "10s", duration,
+        "On SIGINT/SIGTERM, how long to wait for in-flight work before exiting.";
+    log_format: LogFormat = "text", log_format,
+        "Log format on stderr: text or json.";
+    max_horizon_limit: usize = "256", number::<usize>,
+        "Largest max_horizon, grow k or fixed n a session may ask for.";
+    batch_max: usize = "64", number::<usize>,
+        "Most steps replanned together across sessions; 0 turns batching off (each step \
+        is replanned in its request handler).";
+    batch_window: Duration = "0s", duration,
+        "How long a batch worker waits for more steps after the first, e.g. \"200us\"; 0 \
+        takes only what is already queued, adding no delay.";
+    batch_queue: usize = "4096", number::<usize>,
+        "Steps that may wait for a batch worker; more are refused with \
+        RESOURCE_EXHAUSTED.";
+    batch_workers: usize = "2", number::<usize>,
+        "Batch worker threads.";
+    auth_tokens: PathBuf = "none", path,
+        "File of bearer tokens, one per line: every prac.v1 call must carry \
+        `authorization: Bearer TOKEN`, and a session belongs to the token that opened \
+        it; none turns auth off.";
+    tls_cert: PathBuf = "none", path,
+        "PEM certificate chain: serve TLS (with --tls-key); none serves plaintext.";
+    tls_key: PathBuf = "none", path,
+        "PEM private key of --tls-cert.";
+    metrics_listen: SocketAddr = "none", socket_address,
+        "Serve Prometheus metrics over HTTP at ADDR/metrics, e.g. 127.0.0.1:9090; port 0 \
+        picks a free port (printed as `metrics on ADDR`); none serves no metrics.";
+    max_connections: usize = "1024", number::<usize>,
+        "Most client connections open at once; more are closed when accepted (lowered to \
+        fit the open-file limit).";
+    max_streams_per_connection: u32 = "256", number::<u32>,
+        "Most concurrent streams (calls) on one connection (HTTP/2 \
+        SETTINGS_MAX_CONCURRENT_STREAMS).";
+    handshake_timeout: Duration = "10s", duration,
+        "A connection must finish its TLS handshake and send its first request within \
+        this, or it is closed.";
+    idle_timeout: Duration = "10m", duration,
+        "A connection with no call in flight for this long is closed with GOAWAY (clients \
+        reconnect by themselves); 0s keeps idle connections.";
+    keepalive_interval: Duration = "30s", duration,
+        "Interval of HTTP/2 PINGs to each client; 0s sends none.";
+    keepalive_timeout: Duration = "20s", duration,
+        "A PING unanswered for this long closes the connection.";
 }
 
 /// A setting's default: "none" for no value; the others parse (a unit test checks them all).
@@ -343,6 +342,27 @@ mod tests {
                 .unwrap_err()
                 .contains("not a number")
         );
+    }
+
+    #[test]
+    fn the_help_shows_every_default() {
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            args: ServeArgs,
+        }
+        let help = <Cli as clap::CommandFactory>::command()
+            .render_long_help()
+            .to_string();
+        for shown in [
+            "[default: 127.0.0.1:50051]",
+            "[default: bundles]",
+            "[default: 5m]",
+            "[default: none]",
+            "[default: 4194304]",
+        ] {
+            assert!(help.contains(shown), "{shown} missing from:\n{help}");
+        }
     }
 
     /// The defaults declared with the settings, and so shown by --help, are the documented ones.
