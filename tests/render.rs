@@ -61,6 +61,8 @@ fn every_domain_renders_and_a_plan_is_overlaid() {
         "{}",
         String::from_utf8_lossy(&run.stderr)
     );
+    // The default size, its lower third the forecast panel.
+    assert_eq!(png_size(&std::fs::read(&out).unwrap()), (800, 640));
     let stdout = String::from_utf8_lossy(&run.stdout);
     let drawn: usize = stdout
         .split('(')
@@ -161,26 +163,4 @@ fn the_3d_robots_colour_their_limbs_by_side_and_the_lander_fits_its_view() {
     let top = scene.center.1 + scene.height / 2.0;
     let lander_y = lander.trace(&obs)[0].1;
     assert!(lander_y + 1.0 < top, "lander at {lander_y}, view top {top}");
-}
-
-#[test]
-fn a_policy_picture_has_the_asked_size_with_its_forecast_panel() {
-    let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("hopper.png");
-    let bundle =
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("bundles/hopper.safetensors");
-    let run = Command::new(env!("CARGO_BIN_EXE_prac"))
-        .args(["render", "hopper", "--seed", "3", "--steps", "20"])
-        .arg("--policy")
-        .arg(&bundle)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
-    assert_eq!(png_size(&std::fs::read(&out).unwrap()), (800, 640));
 }

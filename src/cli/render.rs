@@ -118,23 +118,8 @@ pub fn run(req: &RenderRequest<'_>) -> anyhow::Result<usize> {
             actions,
             decided_at,
             step: u64::from(req.steps),
-            action_range: action_range(&spec),
+            action_range: spec.action_range(),
         });
     crate::render::render_scene(&env.scene(), forecast.as_ref(), &title, req.out, req.size)?;
     Ok(committed.map_or(0, |(trace, _, _)| trace.len()))
-}
-
-/// The lowest and highest action bound over the dimensions.
-pub fn action_range(spec: &domains::EnvSpec) -> (f32, f32) {
-    let lo = spec
-        .action_low
-        .iter()
-        .copied()
-        .fold(f32::INFINITY, f32::min);
-    let hi = spec
-        .action_high
-        .iter()
-        .copied()
-        .fold(f32::NEG_INFINITY, f32::max);
-    (lo, hi)
 }

@@ -38,6 +38,23 @@ pub struct EnvSpec {
     pub engine: &'static str,
 }
 
+impl EnvSpec {
+    /// The lowest and highest action bound over the dimensions.
+    pub fn action_range(&self) -> (f32, f32) {
+        let lo = self
+            .action_low
+            .iter()
+            .copied()
+            .fold(f32::INFINITY, f32::min);
+        let hi = self
+            .action_high
+            .iter()
+            .copied()
+            .fold(f32::NEG_INFINITY, f32::max);
+        (lo, hi)
+    }
+}
+
 /// The outcome of one step (the observation is written into the caller's buffer).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Transition {

@@ -160,7 +160,7 @@ pub async fn play_episode(
                 trace: env.trace(&predicted),
                 actions: response.forecast.iter().map(|p| p.action.clone()).collect(),
                 decided_at: response.forecast.iter().map(|p| p.decided_at).collect(),
-                action_range: prac::cli::render::action_range(&spec),
+                action_range: spec.action_range(),
                 step: totals.steps,
             });
         }
