@@ -28,11 +28,11 @@ def main():
             ("return", o["mean_return"], o["std_return"], t["mean_return"], t["std_return"]),
             ("episode length", o["mean_length"], o["std_length"], t["mean_length"], t["std_length"]),
             (
-                "forward distance (m)",
+                "torso distance (m)",
                 o["mean_distance"] or 0.0,
                 o["std_distance"] or 0.0,
-                t["mean_distance"],
-                t["std_distance"],
+                t["mean_torso_distance"],
+                t["std_torso_distance"],
             ),
         ]
         for label, om, os_, tm, ts in rows:
@@ -43,10 +43,6 @@ def main():
                 f"| {tm:.2f} +- {ts / math.sqrt(n_t):.2f} | {'yes' if ok else 'no'} |"
             )
         print(f"| {name} | falls | {o['terminated']}/{n_o} | {t['terminated']}/{n_t} | |")
-        print(
-            f"| {name} | torso distance (m) | | {t['mean_torso_distance']:.2f} +- "
-            f"{t['std_torso_distance'] / math.sqrt(n_t):.2f} | |"
-        )
         for (term, ov), (_, tv) in zip(o["reward_terms"], t["reward_terms"]):
             print(f"| {name} | {term} per step | {ov:.3f} | {tv:.3f} | |")
     print()

@@ -7,7 +7,7 @@ use rand_chacha::ChaCha8Rng;
 use rapier2d::prelude::*;
 
 use super::walker_base::{
-    self, CONTROL_PERIOD, DENSITY, GRAVITY, MORE, TARGET_X, WalkerEpisode, bullet_drag,
+    self, CONTROL_PERIOD, GRAVITY, MORE, TARGET_X, WalkerEpisode, bullet_drag,
     clip_observation,
 };
 use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, wrap_angle};
@@ -15,35 +15,44 @@ use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, wrap_angle};
 const SUBSTEPS: usize = 4;
 const FLOOR_FRICTION: f32 = 0.64;
 
-/// A capsule, endpoints at rest in world (x, z).
+/// A capsule, endpoints at rest in world (x, z). Capsules only collide: the links' masses are
+/// [`Inertial`]s.
 struct Capsule {
     a: (f32, f32),
     b: (f32, f32),
     radius: f32,
 }
 
-impl Capsule {
-    /// The mass of the 3D capsule, as MuJoCo computes it (a 2D shape's area would give other
-    /// masses).
-    fn mass(&self) -> f32 {
-        use std::f32::consts::PI;
-        let length = ((self.b.0 - self.a.0).powi(2) + (self.b.1 - self.a.1).powi(2)).sqrt();
-        let r = self.radius;
-        DENSITY * (PI * r * r * length + 4.0 / 3.0 * PI * r * r * r)
-    }
+/// A link's mass as PyBullet 3.2.7 simulates it (getDynamicsInfo; the fixture
+/// tests/fixtures/pybullet-bodies.json): its centre at rest in world (x, z), its mass (kg) and its
+/// moment of inertia about the hinge axis y (kg m^2). PyBullet's MJCF importer puts the centre at
+/// a `fromto` geom's middle but at the body's origin for a geom placed by `pos` (HalfCheetah),
+/// and takes the inertia of the geom's bounding box.
+struct Inertial {
+    com: (f32, f32),
+    mass: f32,
+    inertia: f32,
 }
 
-/// A rigid link: its frame's origin and its capsules, at rest in world (x, z).
+/// A rigid link: its frame's origin, its capsules and its mass, at rest in world (x, z).
 struct LinkDef {
     origin: (f32, f32),
     capsules: Vec<Capsule>,
+    inertial: Inertial,
 }
 
-/// A one-capsule link whose origin is the capsule's centre (MuJoCo's `fromto` geoms).
-fn link(a: (f32, f32), b: (f32, f32), radius: f32) -> LinkDef {
+/// A one-capsule link (MuJoCo's `fromto` geoms) whose origin and centre of mass are the
+/// capsule's middle.
+fn link(a: (f32, f32), b: (f32, f32), radius: f32, mass: f32, inertia: f32) -> LinkDef {
+    let middle = ((a.0 + b.0) / 2.0, (a.1 + b.1) / 2.0);
     LinkDef {
-        origin: ((a.0 + b.0) / 2.0, (a.1 + b.1) / 2.0),
+        origin: middle,
         capsules: vec![Capsule { a, b, radius }],
+        inertial: Inertial {
+            com: middle,
+            mass,
+            inertia,
+        },
     }
 }
 
@@ -113,6 +122,9 @@ struct RobotDef {
     /// Links whose ground contact is observed (PyBullet's foot_list order).
     feet: Vec<usize>,
     alive: Alive,
+    /// Where the root's three joints (x and z slides, the pitch hinge) sit at rest, fixed to the
+    /// torso: PyBullet's importer makes each a link there, and they count among the parts.
+    root: (f32, f32),
 }
 
 fn hopper() -> RobotDef {
@@ -120,10 +132,10 @@ fn hopper() -> RobotDef {
     RobotDef {
         name: "hopper",
         links: vec![
-            link((0.0, 1.45), (0.0, 1.05), 0.05),  // torso
-            link((0.0, 1.05), (0.0, 0.6), 0.05),   // thigh
-            link((0.0, 0.6), (0.0, 0.1), 0.04),    // leg
-            link((-0.13, 0.1), (0.26, 0.1), 0.06), // foot
+            link((0.0, 1.45), (0.0, 1.05), 0.05, 3.665192, 0.112644), // torso
+            link((0.0, 1.05), (0.0, 0.6), 0.05, 4.05789, 0.145171),   // thigh
+            link((0.0, 0.6), (0.0, 0.1), 0.04, 2.781357, 0.106897),   // leg
+            link((-0.13, 0.1), (0.26, 0.1), 0.06, 5.315574, 0.171915), // foot
         ],
         joints: vec![
             hinge(0, 1, (0.0, 1.05), (-150.0 * deg, 0.0), 75.0, 1.0),
@@ -132,20 +144,21 @@ fn hopper() -> RobotDef {
         ],
         feet: vec![3],
         alive: Alive::Upright { min_z: 0.8 },
+        root: (0.0, 0.0),
     }
 }
 
 /// walker2d.xml: a torso on two hopper-like legs (gear 100, feet 30; PyBullet power 0.4).
 fn walker() -> RobotDef {
     let deg = std::f32::consts::PI / 180.0;
-    let mut links = vec![link((0.0, 1.45), (0.0, 1.05), 0.05)]; // torso
+    let mut links = vec![link((0.0, 1.45), (0.0, 1.05), 0.05, 3.665192, 0.112644)]; // torso
     let mut joints = Vec::new();
     // Right leg (links 1-3), then left leg (links 4-6): the same shape, PyBullet's joint order.
     for first in [1, 4] {
         links.extend([
-            link((0.0, 1.05), (0.0, 0.6), 0.05), // thigh
-            link((0.0, 0.6), (0.0, 0.1), 0.04),  // leg
-            link((0.0, 0.1), (0.2, 0.1), 0.06),  // foot
+            link((0.0, 1.05), (0.0, 0.6), 0.05, 4.05789, 0.145171), // thigh
+            link((0.0, 0.6), (0.0, 0.1), 0.04, 2.781357, 0.106897), // leg
+            link((0.0, 0.1), (0.2, 0.1), 0.06, 3.166725, 0.052779), // foot
         ]);
         joints.extend([
             hinge(0, first, (0.0, 1.05), (-150.0 * deg, 0.0), 40.0, 1.0),
@@ -166,11 +179,14 @@ fn walker() -> RobotDef {
         joints,
         feet: vec![3, 6],
         alive: Alive::Upright { min_z: 0.8 },
+        root: (0.0, 0.0),
     }
 }
 
-/// half_cheetah.xml: a torso with a head, back and front legs of three links each, hinges about
-/// +y; PyBullet power 0.9 x gears (120, 90, 60, 140, 60, 30).
+/// PyBullet's own half_cheetah.xml (pybullet_data, not gym's): a torso with a head, back and front
+/// legs of three links each, hinges about +y, feet of 10 kg, the front leg's wider ranges; every
+/// link's mass sits at its joint (the importer ignores the geoms' `pos`). PyBullet's power 0.9 x
+/// its power_coef (120, 90, 60, 140, 60, 30).
 fn cheetah() -> RobotDef {
     let torso = (0.0, 0.7);
     let at = |base: (f32, f32), offset: (f32, f32)| (base.0 + offset.0, base.1 + offset.1);
@@ -180,7 +196,15 @@ fn cheetah() -> RobotDef {
     let fshin = at(fthigh, (-0.14, -0.24));
     let ffoot = at(fshin, (0.13, -0.18));
     let r = 0.046;
-    let body = |origin: (f32, f32), capsules: Vec<Capsule>| LinkDef { origin, capsules };
+    let body = |origin: (f32, f32), capsules: Vec<Capsule>, mass: f32, inertia: f32| LinkDef {
+        origin,
+        capsules,
+        inertial: Inertial {
+            com: origin,
+            mass,
+            inertia,
+        },
+    };
     RobotDef {
         name: "cheetah",
         links: vec![
@@ -194,45 +218,60 @@ fn cheetah() -> RobotDef {
                     },
                     mj_capsule(torso, (0.6, 0.1), 0.87, 0.15, r), // head
                 ],
+                9.457333,
+                1.564635,
             ),
             body(
                 bthigh,
                 vec![mj_capsule(bthigh, (0.1, -0.13), -3.8, 0.145, r)],
+                2.335527,
+                0.043289,
             ),
             body(
                 bshin,
                 vec![mj_capsule(bshin, (-0.14, -0.07), -2.03, 0.15, r)],
+                2.402003,
+                0.043925,
             ),
             body(
                 bfoot,
                 vec![mj_capsule(bfoot, (0.03, -0.097), -0.27, 0.094, r)],
+                10.0,
+                0.09446,
             ),
             body(
                 fthigh,
                 vec![mj_capsule(fthigh, (-0.07, -0.12), 0.52, 0.133, r)],
+                2.175984,
+                0.035076,
             ),
             body(
                 fshin,
                 vec![mj_capsule(fshin, (0.065, -0.09), -0.6, 0.106, r)],
+                1.817013,
+                0.023169,
             ),
             body(
                 ffoot,
                 vec![mj_capsule(ffoot, (0.045, -0.07), -0.6, 0.07, r)],
+                10.0,
+                0.085062,
             ),
         ],
         joints: vec![
             hinge(0, 1, bthigh, (-0.52, 1.05), 0.9 * 120.0, -1.0),
             hinge(1, 2, bshin, (-0.785, 0.785), 0.9 * 90.0, -1.0),
             hinge(2, 3, bfoot, (-0.4, 0.785), 0.9 * 60.0, -1.0),
-            hinge(0, 4, fthigh, (-1.0, 0.7), 0.9 * 140.0, -1.0),
-            hinge(4, 5, fshin, (-1.2, 0.87), 0.9 * 60.0, -1.0),
-            hinge(5, 6, ffoot, (-0.5, 0.5), 0.9 * 30.0, -1.0),
+            hinge(0, 4, fthigh, (-1.5, 0.8), 0.9 * 140.0, -1.0),
+            hinge(4, 5, fshin, (-1.2, 1.1), 0.9 * 60.0, -1.0),
+            hinge(5, 6, ffoot, (-3.1, -0.3), 0.9 * 30.0, -1.0),
         ],
         // PyBullet's foot_list: ffoot, fshin, fthigh, bfoot, bshin, bthigh.
         feet: vec![6, 5, 4, 3, 2, 1],
         alive: Alive::NoContact {
             forbidden: vec![1, 2, 4, 5],
         },
+        root: torso,
     }
 }
 
@@ -322,9 +361,16 @@ impl Planar {
         let mut bodies = Vec::new();
         let mut colliders = Vec::new();
         for (link, origin) in self.robot.links.iter().zip(&origins) {
+            let inertial = &link.inertial;
+            let com = Vector::new(inertial.com.0, inertial.com.1) - *origin;
             let body = world.insert_body(
                 RigidBodyBuilder::dynamic()
                     .translation(*origin)
+                    .additional_mass_properties(MassProperties::new(
+                        com,
+                        inertial.mass,
+                        inertial.inertia,
+                    ))
                     .can_sleep(false),
             );
             let mut handles = Vec::new();
@@ -334,7 +380,7 @@ impl Planar {
                 handles.push(
                     world.insert_collider(
                         ColliderBuilder::capsule_from_endpoints(a, b, capsule.radius)
-                            .mass(capsule.mass())
+                            .density(0.0)
                             .friction(FLOOR_FRICTION)
                             .collision_groups(robot_group),
                         Some(body),
@@ -407,9 +453,32 @@ impl Planar {
         &self.world.bodies[self.bodies[0]]
     }
 
+    /// PyBullet's body x, which the progress reward measures: the mean x of the robot's parts,
+    /// which are every link's centre of mass, the link PyBullet's importer makes at each hinge and
+    /// at each of the root's three joints, and the floor (at x = 0).
+    fn body_x(&self) -> f32 {
+        let at = |link: usize, rest: (f32, f32)| {
+            let origin = self.robot.links[link].origin;
+            let local = Vector::new(rest.0 - origin.0, rest.1 - origin.1);
+            self.world.bodies[self.bodies[link]]
+                .position()
+                .transform_point(local)
+                .x
+        };
+        let mut sum = 3.0 * at(0, self.robot.root);
+        for (k, link) in self.robot.links.iter().enumerate() {
+            sum += at(k, link.inertial.com);
+        }
+        for joint in &self.robot.joints {
+            sum += at(joint.child, joint.anchor);
+        }
+        let parts = 3 + self.robot.links.len() + self.robot.joints.len() + 1;
+        sum / parts as f32
+    }
+
     /// PyBullet's potential: minus the distance to the target per control period.
     fn potential(&self) -> f64 {
-        walker_base::potential((TARGET_X - self.torso().translation().x).abs())
+        walker_base::potential((TARGET_X - self.body_x()).abs())
     }
 
     fn read_joints(&mut self) {
@@ -509,11 +578,11 @@ impl Env for Planar {
             .collect()
     }
 
-    /// The torso's x, which the progress reward measures.
     fn reward_terms(&self) -> &[(&'static str, f64)] {
         self.episode.reward_terms()
     }
 
+    /// The torso's x (the progress reward measures the parts' mean, [`Planar::body_x`]).
     fn forward_position(&self) -> Option<f64> {
         Some(f64::from(self.torso().translation().x))
     }

@@ -13,7 +13,7 @@ use rapier3d::prelude::*;
 
 use super::scene::{Part, Scene, Shape};
 use super::walker_base::{
-    self, CONTROL_PERIOD, DENSITY, GRAVITY, MORE, TARGET_X, WalkerEpisode, bullet_drag,
+    self, CONTROL_PERIOD, GRAVITY, MORE, TARGET_X, WalkerEpisode, bullet_drag,
     clip_observation,
 };
 use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, wrap_angle};
@@ -35,15 +35,24 @@ enum Geom {
     Sphere(Vector, f32),
 }
 
-impl Geom {
-    /// The volume PyBullet's MJCF importer computes (a capsule is its cylinder plus one sphere).
-    fn mass(&self) -> f32 {
-        use std::f32::consts::PI;
-        let volume = match *self {
-            Geom::Capsule(a, b, r) => PI * r * r * (b - a).length() + 4.0 / 3.0 * PI * r.powi(3),
-            Geom::Sphere(_, r) => 4.0 / 3.0 * PI * r.powi(3),
-        };
-        DENSITY * volume
+/// A mass as PyBullet 3.2.7 simulates it (getDynamicsInfo; the fixture
+/// tests/fixtures/pybullet-bodies.json): its centre at rest in world coordinates, its mass (kg)
+/// and its principal moments of inertia about the world axes at rest (kg m^2). PyBullet's MJCF
+/// importer puts a body's centre at its last geom's middle when that geom is a `fromto` one and
+/// at the body's origin when it is placed by `pos`, and takes inertias from the geoms' bounding
+/// boxes; several of its links fixed together (the Ant's torso and legs, the Humanoid's shin and
+/// foot) are one link here, with their masses summed.
+struct Inertial {
+    com: Vector,
+    mass: f32,
+    inertia: Vector,
+}
+
+fn inertial(com: Vector, mass: f32, inertia: (f32, f32, f32)) -> Inertial {
+    Inertial {
+        com,
+        mass,
+        inertia: v(inertia.0, inertia.1, inertia.2),
     }
 }
 
@@ -59,7 +68,17 @@ struct LinkDef {
     range: (f32, f32),
     torque: f32,
     damping: f32,
+    /// Shapes, which only collide: the mass is `inertials`.
     geoms: Vec<Geom>,
+    /// None for a link that only chains hinges of one MuJoCo body.
+    inertials: Vec<Inertial>,
+}
+
+impl LinkDef {
+    fn with_mass(mut self, inertials: Vec<Inertial>) -> LinkDef {
+        self.inertials = inertials;
+        self
+    }
 }
 
 /// PyBullet's alive bonus: `bonus` while the torso is above `min_z`, else -1 and the episode ends.
@@ -112,6 +131,7 @@ fn hinge(
         torque,
         damping,
         geoms,
+        inertials: Vec::new(),
     }
 }
 
@@ -127,6 +147,10 @@ fn ant() -> RobotDef {
     let torque = 250.0;
     let damping = 1.0;
     let mut torso_geoms = vec![Geom::Sphere(torso, 0.25)];
+    let mut torso_mass = vec![inertial(torso, 65.449847, (1.636246, 1.636246, 1.636246))];
+    // A leg segment's box inertia, and a foot's, as PyBullet computes them.
+    let segment = (0.16394, 0.16394, 0.252698);
+    let foot = (0.526318, 0.526318, 0.922859);
     let mut links = Vec::new();
     // (leg direction in x-y, ankle axis, ankle range): front_left, front_right, left_back,
     // right_back, in the file's order.
@@ -142,26 +166,33 @@ fn ant() -> RobotDef {
         let hip = torso + step;
         let ankle = hip + step;
         torso_geoms.push(capsule(torso, hip, r));
+        torso_mass.push(inertial(torso + step * 0.5, 7.83155, segment));
         let hip_link = links.len() + 1;
-        links.push(hinge(
-            0,
-            hip,
-            v(0.0, 0.0, 1.0),
-            (-40.0, 40.0),
-            torque,
-            damping,
-            vec![capsule(hip, ankle, r)],
-        ));
+        links.push(
+            hinge(
+                0,
+                hip,
+                v(0.0, 0.0, 1.0),
+                (-40.0, 40.0),
+                torque,
+                damping,
+                vec![capsule(hip, ankle, r)],
+            )
+            .with_mass(vec![inertial(hip + step * 0.5, 7.83155, segment)]),
+        );
         feet.push(links.len() + 1);
-        links.push(hinge(
-            hip_link,
-            ankle,
-            ankle_axis,
-            ankle_range,
-            torque,
-            damping,
-            vec![capsule(ankle, ankle + step * 2.0, r)],
-        ));
+        links.push(
+            hinge(
+                hip_link,
+                ankle,
+                ankle_axis,
+                ankle_range,
+                torque,
+                damping,
+                vec![capsule(ankle, ankle + step * 2.0, r)],
+            )
+            .with_mass(vec![inertial(ankle + step, 13.51844, foot)]),
+        );
     }
     let root = LinkDef {
         parent: None,
@@ -171,6 +202,7 @@ fn ant() -> RobotDef {
         torque: 0.0,
         damping: 0.0,
         geoms: torso_geoms,
+        inertials: torso_mass,
     };
     links.insert(0, root);
     RobotDef {
@@ -190,9 +222,12 @@ fn ant() -> RobotDef {
 }
 
 /// humanoid_symmetric.xml with PyBullet's motor powers x 0.41. Positions are the model's, summed
-/// down the body tree (its near-identity body quaternions are dropped).
+/// down the body tree (its near-identity body quaternions are dropped), from the torso's frame at
+/// (0.01, 0, 1.52): PyBullet puts the torso's centre of mass, its last geom's middle at (-0.01, 0,
+/// -0.12) in that frame, at the model's (0, 0, 1.4), so the whole body stands 0.12 m higher than
+/// MuJoCo's.
 fn humanoid() -> RobotDef {
-    let torso = v(0.0, 0.0, 1.4);
+    let torso = v(0.01, 0.0, 1.52);
     let at = |base: Vector, x: f32, y: f32, z: f32| base + v(x, y, z);
     let power = 0.41;
     let mut links = vec![LinkDef {
@@ -211,6 +246,11 @@ fn humanoid() -> RobotDef {
                 0.06,
             ),
         ],
+        inertials: vec![inertial(
+            at(torso, -0.01, 0.0, -0.12),
+            8.907462,
+            (0.281773, 0.221499, 0.132127),
+        )],
     }];
     let mut add = |link: LinkDef| {
         links.push(link);
@@ -227,33 +267,47 @@ fn humanoid() -> RobotDef {
         5.0,
         vec![],
     ));
-    let abdomen_y = add(hinge(
-        abdomen_z,
-        abdomen,
-        v(0.0, 1.0, 0.0),
-        (-75.0, 30.0),
-        100.0 * power,
-        5.0,
-        vec![capsule(
-            at(lwaist, 0.0, -0.06, 0.0),
-            at(lwaist, 0.0, 0.06, 0.0),
-            0.06,
-        )],
-    ));
+    let abdomen_y = add(
+        hinge(
+            abdomen_z,
+            abdomen,
+            v(0.0, 1.0, 0.0),
+            (-75.0, 30.0),
+            100.0 * power,
+            5.0,
+            vec![capsule(
+                at(lwaist, 0.0, -0.06, 0.0),
+                at(lwaist, 0.0, 0.06, 0.0),
+                0.06,
+            )],
+        )
+        .with_mass(vec![inertial(
+            lwaist,
+            2.261947,
+            (0.013572, 0.005429, 0.013572),
+        )]),
+    );
     let pelvis = at(lwaist, 0.0, 0.0, -0.165);
-    let abdomen_x = add(hinge(
-        abdomen_y,
-        at(pelvis, 0.0, 0.0, 0.1),
-        v(1.0, 0.0, 0.0),
-        (-35.0, 35.0),
-        100.0 * power,
-        5.0,
-        vec![capsule(
-            at(pelvis, -0.02, -0.07, 0.0),
-            at(pelvis, -0.02, 0.07, 0.0),
-            0.09,
-        )],
-    ));
+    let abdomen_x = add(
+        hinge(
+            abdomen_y,
+            at(pelvis, 0.0, 0.0, 0.1),
+            v(1.0, 0.0, 0.0),
+            (-35.0, 35.0),
+            100.0 * power,
+            5.0,
+            vec![capsule(
+                at(pelvis, -0.02, -0.07, 0.0),
+                at(pelvis, -0.02, 0.07, 0.0),
+                0.09,
+            )],
+        )
+        .with_mass(vec![inertial(
+            at(pelvis, -0.02, 0.0, 0.0),
+            6.616195,
+            (0.125487, 0.074542, 0.125487),
+        )]),
+    );
     let mut feet = Vec::new();
     // Right leg then left: the left one mirrors y and its hip x and z axes.
     for side in [-1.0f32, 1.0] {
@@ -276,30 +330,48 @@ fn humanoid() -> RobotDef {
             5.0,
             vec![],
         ));
-        let hip_y = add(hinge(
-            hip_z,
-            thigh,
-            v(0.0, 1.0, 0.0),
-            (-120.0, 20.0),
-            300.0 * power,
-            5.0,
-            vec![capsule(thigh, at(thigh, 0.0, -0.01 * side, -0.34), 0.06)],
-        ));
+        let hip_y = add(
+            hinge(
+                hip_z,
+                thigh,
+                v(0.0, 1.0, 0.0),
+                (-120.0, 20.0),
+                300.0 * power,
+                5.0,
+                vec![capsule(thigh, at(thigh, 0.0, -0.01 * side, -0.34), 0.06)],
+            )
+            .with_mass(vec![inertial(
+                at(thigh, 0.0, -0.005 * side, -0.17),
+                4.751751,
+                (0.13293, 0.131307, 0.033302),
+            )]),
+        );
         let shin = at(thigh, 0.0, -0.01 * side, -0.403);
         let foot = at(shin, 0.0, 0.0, -0.45);
-        let knee = add(hinge(
-            hip_y,
-            at(shin, 0.0, 0.0, 0.02),
-            v(0.0, -1.0, 0.0),
-            (-160.0, -2.0),
-            200.0 * power,
-            1.0,
-            // The foot is fixed to the shin (no joint in the model).
-            vec![
-                capsule(shin, at(shin, 0.0, 0.0, -0.3), 0.049),
-                Geom::Sphere(at(foot, 0.0, 0.0, 0.1), 0.075),
-            ],
-        ));
+        let knee = add(
+            hinge(
+                hip_y,
+                at(shin, 0.0, 0.0, 0.02),
+                v(0.0, -1.0, 0.0),
+                (-160.0, -2.0),
+                200.0 * power,
+                1.0,
+                // The foot is fixed to the shin (no joint in the model).
+                vec![
+                    capsule(shin, at(shin, 0.0, 0.0, -0.3), 0.049),
+                    Geom::Sphere(at(foot, 0.0, 0.0, 0.1), 0.075),
+                ],
+            )
+            .with_mass(vec![
+                inertial(
+                    at(shin, 0.0, 0.0, -0.15),
+                    2.755696,
+                    (0.059745, 0.059745, 0.014552),
+                ),
+                // At the foot body's origin: its sphere is placed by `pos`.
+                inertial(foot, 1.767146, (0.006627, 0.006627, 0.006627)),
+            ]),
+        );
         feet.push(knee);
     }
     // Right arm then left: y mirrored, and the model's own axes per side.
@@ -321,32 +393,43 @@ fn humanoid() -> RobotDef {
     ] {
         let upper = at(torso, 0.0, 0.17 * side, 0.06);
         let first = add(hinge(0, upper, shoulder1, range, 75.0 * power, 1.0, vec![]));
-        let second = add(hinge(
-            first,
-            upper,
-            shoulder2,
-            range,
-            75.0 * power,
-            1.0,
-            vec![capsule(upper, at(upper, 0.16, 0.16 * side, -0.16), 0.04)],
-        ));
+        let second = add(
+            hinge(
+                first,
+                upper,
+                shoulder2,
+                range,
+                75.0 * power,
+                1.0,
+                vec![capsule(upper, at(upper, 0.16, 0.16 * side, -0.16), 0.04)],
+            )
+            .with_mass(vec![inertial(
+                at(upper, 0.08, 0.08 * side, -0.08),
+                1.66108,
+                (0.028349, 0.028349, 0.028349),
+            )]),
+        );
         let lower = at(upper, 0.18, 0.18 * side, -0.18);
-        add(hinge(
-            second,
-            lower,
-            elbow,
-            (-90.0, 50.0),
-            75.0 * power,
-            1.0,
-            vec![
-                capsule(
-                    at(lower, 0.01, -0.01 * side, 0.01),
-                    at(lower, 0.17, -0.17 * side, 0.17),
-                    0.031,
-                ),
-                Geom::Sphere(at(lower, 0.18, -0.18 * side, 0.18), 0.04),
-            ],
-        ));
+        add(
+            hinge(
+                second,
+                lower,
+                elbow,
+                (-90.0, 50.0),
+                75.0 * power,
+                1.0,
+                vec![
+                    capsule(
+                        at(lower, 0.01, -0.01 * side, 0.01),
+                        at(lower, 0.17, -0.17 * side, 0.17),
+                        0.031,
+                    ),
+                    Geom::Sphere(at(lower, 0.18, -0.18 * side, 0.18), 0.04),
+                ],
+            )
+            // At the elbow: the body's last geom is the hand, placed by `pos`.
+            .with_mass(vec![inertial(lower, 1.22954, (0.01869, 0.01869, 0.01869))]),
+        );
     }
     RobotDef {
         name: "humanoid",
@@ -446,14 +529,16 @@ impl Spatial {
             let mut builder = RigidBodyBuilder::dynamic()
                 .translation(link.origin)
                 .can_sleep(false);
-            if link.geoms.is_empty() {
+            let mass = if link.inertials.is_empty() {
                 let inertia = CHAIN_LINK_MASS * 0.01;
-                builder = builder.additional_mass_properties(MassProperties::new(
-                    Vector::ZERO,
-                    CHAIN_LINK_MASS,
-                    Vector::splat(inertia),
-                ));
-            }
+                MassProperties::new(Vector::ZERO, CHAIN_LINK_MASS, Vector::splat(inertia))
+            } else {
+                link.inertials
+                    .iter()
+                    .map(|i| MassProperties::new(i.com - link.origin, i.mass, i.inertia))
+                    .fold(MassProperties::default(), |sum, m| sum + m)
+            };
+            builder = builder.additional_mass_properties(mass);
             let body = world.insert_body(builder);
             let handles = link
                 .geoms
@@ -469,7 +554,7 @@ impl Spatial {
                     };
                     world.insert_collider(
                         shape
-                            .mass(geom.mass())
+                            .density(0.0)
                             .friction(self.robot.friction)
                             .collision_groups(robot_group),
                         Some(body),
@@ -531,19 +616,22 @@ impl Spatial {
         &self.world.bodies[self.bodies[0]]
     }
 
-    /// PyBullet's body_xyz: x and y averaged over the parts (here the links with shapes, at
-    /// their centres of mass), z the torso's.
+    /// PyBullet's body_xyz: x and y averaged over the robot's parts, which are every one of its
+    /// links' centres of mass, the link its importer makes at each hinge, and the floor (at the
+    /// origin); z is the torso's centre of mass.
     fn body_xyz(&self) -> Vector {
-        let (mut x, mut y, mut parts) = (0.0, 0.0, 0.0);
+        let mut sum = Vector::ZERO;
+        let mut parts = 1; // the floor
         for (link, &body) in self.robot.links.iter().zip(&self.bodies) {
-            if !link.geoms.is_empty() {
-                let c = self.world.bodies[body].center_of_mass();
-                x += c.x;
-                y += c.y;
-                parts += 1.0;
+            let pose = self.world.bodies[body].position();
+            let anchor = link.parent.map(|_| link.origin);
+            for point in anchor.into_iter().chain(link.inertials.iter().map(|i| i.com)) {
+                sum += pose.transform_point(point - link.origin);
+                parts += 1;
             }
         }
-        v(x / parts, y / parts, self.torso().translation().z)
+        let mean = sum / parts as f32;
+        v(mean.x, mean.y, self.torso().center_of_mass().z)
     }
 
     /// PyBullet's potential: minus the distance to the target per control period.
@@ -714,7 +802,7 @@ impl Env for Spatial {
 
     fn trace(&self, predicted: &[f32]) -> Vec<(f64, f64)> {
         let dt = CONTROL_PERIOD;
-        let torso = self.torso().translation();
+        let torso = self.torso().center_of_mass();
         let (mut x, mut y) = (torso.x, torso.y);
         predicted
             .chunks_exact(self.spec.obs_dim)
@@ -727,13 +815,14 @@ impl Env for Spatial {
             .collect()
     }
 
-    /// PyBullet's body x (the parts' mean), which the progress reward measures.
     fn reward_terms(&self) -> &[(&'static str, f64)] {
         self.episode.reward_terms()
     }
 
+    /// The torso's centre of mass x (the progress reward measures the parts' mean,
+    /// [`Spatial::body_xyz`]).
     fn forward_position(&self) -> Option<f64> {
-        Some(f64::from(self.body_xyz().x))
+        Some(f64::from(self.torso().center_of_mass().x))
     }
 
     fn reset(&mut self, seed: u64, obs: &mut [f32]) -> Result<(), EnvError> {
@@ -752,7 +841,7 @@ impl Env for Spatial {
         self.initial_z = self
             .robot
             .initial_z
-            .unwrap_or_else(|| self.torso().translation().z);
+            .unwrap_or_else(|| self.torso().center_of_mass().z);
         self.episode.start(self.potential());
         self.observe(obs);
         Ok(())

@@ -8,8 +8,6 @@ pub(super) const CONTROL_PERIOD: f32 = 0.0165;
 pub(super) const GRAVITY: f32 = 9.8;
 /// PyBullet's walk target, far ahead on x.
 pub(super) const TARGET_X: f32 = 1000.0;
-/// MuJoCo's default density, which PyBullet's MJCF importer gives every geom.
-pub(super) const DENSITY: f32 = 1000.0;
 /// Joint angles and speeds, then feet contacts, follow these 8 "more" values.
 pub(super) const MORE: usize = 8;
 

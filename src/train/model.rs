@@ -12,8 +12,10 @@ use super::nets::{MlpNet, matrix, scalar};
 use crate::bundle::Normalization;
 use crate::policy::DynamicsModel;
 
-/// Deviations below this are treated as this (a constant feature must not blow up).
-const MIN_STD: f64 = 1e-6;
+/// A feature whose deviation is below this is constant in the data: it is normalised by 1, not
+/// by its deviation, so the model's sensitivity to it (and to float rounding in it) stays that of
+/// an ordinary feature instead of growing to 1 / deviation.
+const CONSTANT_FEATURE_STD: f64 = 1e-4;
 
 /// Welford running mean and variance per feature.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -44,15 +46,16 @@ impl RunningStats {
     pub fn mean_f32(&self) -> Vec<f32> {
         self.mean.iter().map(|&m| m as f32).collect()
     }
-    /// Population standard deviations, floored; 1 before two samples.
+    /// Population standard deviations; 1 for a constant feature and before two samples.
     pub fn std_f32(&self) -> Vec<f32> {
         self.m2
             .iter()
             .map(|&m2| {
-                if self.count < 2 {
+                let std = (m2 / self.count.max(1) as f64).sqrt();
+                if self.count < 2 || std < CONSTANT_FEATURE_STD {
                     1.0
                 } else {
-                    (m2 / self.count as f64).sqrt().max(MIN_STD) as f32
+                    std as f32
                 }
             })
             .collect()

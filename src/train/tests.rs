@@ -372,3 +372,19 @@ fn the_trainer_refuses_what_the_command_line_refuses() {
     assert!(refused(&|o| o.sac.gamma = 1.0).contains("--gamma"));
     assert!(refused(&|o| o.sac.hidden.clear()).contains("--hidden"));
 }
+
+#[test]
+fn constant_features_are_normalised_by_one() {
+    use super::model::RunningStats;
+    let mut stats = RunningStats::new(3);
+    for k in 0..100 {
+        let x = k as f32 / 100.0;
+        // A varying feature, an exactly constant one, and one that only rounds.
+        stats.push(&[x, 0.7, 1.0 + 1e-7 * (k % 2) as f32]);
+    }
+    let std = stats.std_f32();
+    assert!((std[0] - 0.2887).abs() < 1e-3, "{std:?}");
+    assert_eq!(std[1], 1.0);
+    assert_eq!(std[2], 1.0);
+    assert_eq!(RunningStats::new(2).std_f32(), vec![1.0, 1.0]);
+}
