@@ -1,7 +1,7 @@
 """The robots as PyBullet 3.2.7 simulates them (its MJCF importer's multibodies, read back with
 getJointInfo / getDynamicsInfo / getLinkState with every joint at 0): per link its parent, joint,
 axis, limits, mass, centre of mass and inertia; the motors' torque per unit action (PyBullet's
-power x power_coef); and the task's parts, whose mean x and y is the body position the progress
+power x power_coef, or the Humanoid's motor_power); and the task's parts, whose mean x and y is the body position the progress
 reward measures. Writes the JSON fixture the domain tests compare prac's robots with."""
 
 import argparse
@@ -69,10 +69,12 @@ def robot_bodies(name):
                 link["range"] = rounded([info[8], info[9]])
         links.append(link)
         names.append(link["name"])
-    motors = [
-        {"joint": j.joint_name, "torque": round(robot.power * j.power_coef, 6)}
-        for j in robot.ordered_joints
-    ]
+    if hasattr(robot, "motor_power"):
+        # The Humanoid's apply_action: its own motor list and powers.
+        pairs = zip(robot.motor_names, robot.motor_power)
+    else:
+        pairs = ((j.joint_name, j.power_coef) for j in robot.ordered_joints)
+    motors = [{"joint": n, "torque": round(robot.power * c, 6)} for n, c in pairs]
     floor = p.getDynamicsInfo(0, -1, physicsClientId=client)[1]
     out = {
         "env": ENVS[name],

@@ -7,7 +7,7 @@ use rand_chacha::ChaCha8Rng;
 use rapier2d::prelude::*;
 
 use super::walker_base::{
-    self, CONTROL_PERIOD, GRAVITY, MORE, TARGET_X, WalkerEpisode, bullet_drag,
+    self, BULLET_LIMIT_SPRING, CONTROL_PERIOD, GRAVITY, MORE, TARGET_X, WalkerEpisode, bullet_drag,
     clip_observation,
 };
 use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, wrap_angle};
@@ -387,12 +387,13 @@ impl Planar {
                     ),
                 );
             }
+            // Now, not at the first step: reset reads the centres of mass.
+            world.bodies[body].recompute_mass_properties_from_colliders(&world.colliders);
             bodies.push(body);
             colliders.push(handles);
         }
         // One multibody (reduced coordinates, like PyBullet's btMultiBody): the joints cannot
         // come apart under large torques, which impulse joints let happen.
-        let mut limits = Vec::new();
         let mut first_joint = None;
         for joint in &self.robot.joints {
             let anchor = Vector::new(joint.anchor.0, joint.anchor.1);
@@ -403,19 +404,22 @@ impl Planar {
             } else {
                 [-hi, -lo]
             };
-            limits.push(range);
             let hinge = RevoluteJointBuilder::new()
                 .local_anchor1(anchor - origins[joint.parent])
                 .local_anchor2(anchor - origins[joint.child])
                 .limits(range)
+                .softness(SpringCoefficients::new(
+                    BULLET_LIMIT_SPRING.0,
+                    BULLET_LIMIT_SPRING.1,
+                ))
                 .contacts_enabled(false);
             let handle = world
                 .insert_multibody_joint(bodies[joint.parent], bodies[joint.child], hinge)
                 .expect("the robot is a tree");
             first_joint.get_or_insert(handle);
         }
-        // No default damping (PyBullet has none); the reset angles, clamped to the limits as
-        // Bullet's limit would in the first step.
+        // No default damping (PyBullet has none); the reset angles as drawn, inside the limits
+        // or not, as PyBullet sets them (the limits push them back in the first steps).
         if let Some(first) = first_joint {
             let (multibody, _) = world
                 .multibody_joints
@@ -424,12 +428,12 @@ impl Planar {
             multibody.forward_kinematics(&world.bodies, true);
             multibody.damping_mut().fill(0.0);
             let mut displacement = vec![0.0; multibody.ndofs()];
-            for ((joint, &q), range) in self.robot.joints.iter().zip(angles).zip(&limits) {
+            for (joint, &q) in self.robot.joints.iter().zip(angles) {
                 let dof = multibody
                     .link(joint.child)
                     .expect("links are numbered in insertion order")
                     .assembly_id();
-                displacement[dof] = (joint.axis * q).clamp(range[0], range[1]);
+                displacement[dof] = joint.axis * q;
             }
             multibody.apply_displacements(&displacement);
             multibody.forward_kinematics(&world.bodies, true);
@@ -630,6 +634,30 @@ impl Env for Planar {
 
 #[cfg(test)]
 impl Planar {
+    /// The robot's mass (kg) and centre of mass (world x, 0, z; m).
+    pub(super) fn mass_and_centre_for_test(&self) -> (f32, [f32; 3]) {
+        let (mut mass, mut moment) = (0.0, Vector::ZERO);
+        for &h in &self.bodies {
+            let body = &self.world.bodies[h];
+            mass += body.mass();
+            moment += body.center_of_mass() * body.mass();
+        }
+        let c = moment / mass;
+        (mass, [c.x, 0.0, c.y])
+    }
+
+    /// Per actuated joint in PyBullet's motor order: its limits (rad, the model's convention) and
+    /// unit-action torque.
+    pub(super) fn joints_for_test(&self) -> Vec<((f32, f32), f32)> {
+        let joints = &self.robot.joints;
+        joints.iter().map(|j| (j.range, j.torque)).collect()
+    }
+
+    /// How many parts PyBullet's body x averages over (the floor included).
+    pub(super) fn parts_for_test(&self) -> usize {
+        3 + self.robot.links.len() + self.robot.joints.len() + 1
+    }
+
     /// Takes the floor away and lets the robot fall for `seconds` without torques; returns the
     /// torso's vertical speed.
     pub(super) fn drop_for_test(&mut self, seconds: f32) -> f32 {

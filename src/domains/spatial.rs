@@ -13,7 +13,7 @@ use rapier3d::prelude::*;
 
 use super::scene::{Part, Scene, Shape};
 use super::walker_base::{
-    self, CONTROL_PERIOD, GRAVITY, MORE, TARGET_X, WalkerEpisode, bullet_drag,
+    self, BULLET_LIMIT_SPRING, CONTROL_PERIOD, GRAVITY, MORE, TARGET_X, WalkerEpisode, bullet_drag,
     clip_observation,
 };
 use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, wrap_angle};
@@ -64,10 +64,9 @@ struct LinkDef {
     /// The hinge axis (unit, the same in world, parent and link frames at rest); unused for the
     /// root.
     axis: Vector,
-    /// Limits in radians, the torque of a unit action and the joint's damping (N m s).
+    /// Limits in radians and the torque of a unit action.
     range: (f32, f32),
     torque: f32,
-    damping: f32,
     /// Shapes, which only collide: the mass is `inertials`.
     geoms: Vec<Geom>,
     /// None for a link that only chains hinges of one MuJoCo body.
@@ -119,7 +118,6 @@ fn hinge(
     axis: Vector,
     range_deg: (f32, f32),
     torque: f32,
-    damping: f32,
     geoms: Vec<Geom>,
 ) -> LinkDef {
     let deg = std::f32::consts::PI / 180.0;
@@ -129,7 +127,6 @@ fn hinge(
         axis: axis.normalize(),
         range: (range_deg.0 * deg, range_deg.1 * deg),
         torque,
-        damping,
         geoms,
         inertials: Vec::new(),
     }
@@ -145,7 +142,6 @@ fn ant() -> RobotDef {
     let torso = v(0.0, 0.0, 0.75);
     let r = 0.08;
     let torque = 250.0;
-    let damping = 1.0;
     let mut torso_geoms = vec![Geom::Sphere(torso, 0.25)];
     let mut torso_mass = vec![inertial(torso, 65.449847, (1.636246, 1.636246, 1.636246))];
     // A leg segment's box inertia, and a foot's, as PyBullet computes them.
@@ -175,7 +171,6 @@ fn ant() -> RobotDef {
                 v(0.0, 0.0, 1.0),
                 (-40.0, 40.0),
                 torque,
-                damping,
                 vec![capsule(hip, ankle, r)],
             )
             .with_mass(vec![inertial(hip + step * 0.5, 7.83155, segment)]),
@@ -188,7 +183,6 @@ fn ant() -> RobotDef {
                 ankle_axis,
                 ankle_range,
                 torque,
-                damping,
                 vec![capsule(ankle, ankle + step * 2.0, r)],
             )
             .with_mass(vec![inertial(ankle + step, 13.51844, foot)]),
@@ -200,7 +194,6 @@ fn ant() -> RobotDef {
         axis: Vector::ZERO,
         range: (0.0, 0.0),
         torque: 0.0,
-        damping: 0.0,
         geoms: torso_geoms,
         inertials: torso_mass,
     };
@@ -236,7 +229,6 @@ fn humanoid() -> RobotDef {
         axis: Vector::ZERO,
         range: (0.0, 0.0),
         torque: 0.0,
-        damping: 0.0,
         geoms: vec![
             capsule(at(torso, 0.0, -0.07, 0.0), at(torso, 0.0, 0.07, 0.0), 0.07),
             Geom::Sphere(at(torso, 0.0, 0.0, 0.19), 0.09),
@@ -264,50 +256,43 @@ fn humanoid() -> RobotDef {
         v(0.0, 0.0, 1.0),
         (-45.0, 45.0),
         100.0 * power,
-        5.0,
         vec![],
     ));
-    let abdomen_y = add(
-        hinge(
-            abdomen_z,
-            abdomen,
-            v(0.0, 1.0, 0.0),
-            (-75.0, 30.0),
-            100.0 * power,
-            5.0,
-            vec![capsule(
-                at(lwaist, 0.0, -0.06, 0.0),
-                at(lwaist, 0.0, 0.06, 0.0),
-                0.06,
-            )],
-        )
-        .with_mass(vec![inertial(
-            lwaist,
-            2.261947,
-            (0.013572, 0.005429, 0.013572),
-        )]),
-    );
+    let abdomen_y = add(hinge(
+        abdomen_z,
+        abdomen,
+        v(0.0, 1.0, 0.0),
+        (-75.0, 30.0),
+        100.0 * power,
+        vec![capsule(
+            at(lwaist, 0.0, -0.06, 0.0),
+            at(lwaist, 0.0, 0.06, 0.0),
+            0.06,
+        )],
+    )
+    .with_mass(vec![inertial(
+        lwaist,
+        2.261947,
+        (0.013572, 0.005429, 0.013572),
+    )]));
     let pelvis = at(lwaist, 0.0, 0.0, -0.165);
-    let abdomen_x = add(
-        hinge(
-            abdomen_y,
-            at(pelvis, 0.0, 0.0, 0.1),
-            v(1.0, 0.0, 0.0),
-            (-35.0, 35.0),
-            100.0 * power,
-            5.0,
-            vec![capsule(
-                at(pelvis, -0.02, -0.07, 0.0),
-                at(pelvis, -0.02, 0.07, 0.0),
-                0.09,
-            )],
-        )
-        .with_mass(vec![inertial(
-            at(pelvis, -0.02, 0.0, 0.0),
-            6.616195,
-            (0.125487, 0.074542, 0.125487),
-        )]),
-    );
+    let abdomen_x = add(hinge(
+        abdomen_y,
+        at(pelvis, 0.0, 0.0, 0.1),
+        v(1.0, 0.0, 0.0),
+        (-35.0, 35.0),
+        100.0 * power,
+        vec![capsule(
+            at(pelvis, -0.02, -0.07, 0.0),
+            at(pelvis, -0.02, 0.07, 0.0),
+            0.09,
+        )],
+    )
+    .with_mass(vec![inertial(
+        at(pelvis, -0.02, 0.0, 0.0),
+        6.616195,
+        (0.125487, 0.074542, 0.125487),
+    )]));
     let mut feet = Vec::new();
     // Right leg then left: the left one mirrors y and its hip x and z axes.
     for side in [-1.0f32, 1.0] {
@@ -318,7 +303,6 @@ fn humanoid() -> RobotDef {
             v(-side, 0.0, 0.0),
             (-25.0, 5.0),
             100.0 * power,
-            5.0,
             vec![],
         ));
         let hip_z = add(hinge(
@@ -327,51 +311,44 @@ fn humanoid() -> RobotDef {
             v(0.0, 0.0, -side),
             (-60.0, 35.0),
             100.0 * power,
-            5.0,
             vec![],
         ));
-        let hip_y = add(
-            hinge(
-                hip_z,
-                thigh,
-                v(0.0, 1.0, 0.0),
-                (-120.0, 20.0),
-                300.0 * power,
-                5.0,
-                vec![capsule(thigh, at(thigh, 0.0, -0.01 * side, -0.34), 0.06)],
-            )
-            .with_mass(vec![inertial(
-                at(thigh, 0.0, -0.005 * side, -0.17),
-                4.751751,
-                (0.13293, 0.131307, 0.033302),
-            )]),
-        );
+        let hip_y = add(hinge(
+            hip_z,
+            thigh,
+            v(0.0, 1.0, 0.0),
+            (-120.0, 20.0),
+            300.0 * power,
+            vec![capsule(thigh, at(thigh, 0.0, -0.01 * side, -0.34), 0.06)],
+        )
+        .with_mass(vec![inertial(
+            at(thigh, 0.0, -0.005 * side, -0.17),
+            4.751751,
+            (0.13293, 0.131307, 0.033302),
+        )]));
         let shin = at(thigh, 0.0, -0.01 * side, -0.403);
         let foot = at(shin, 0.0, 0.0, -0.45);
-        let knee = add(
-            hinge(
-                hip_y,
-                at(shin, 0.0, 0.0, 0.02),
-                v(0.0, -1.0, 0.0),
-                (-160.0, -2.0),
-                200.0 * power,
-                1.0,
-                // The foot is fixed to the shin (no joint in the model).
-                vec![
-                    capsule(shin, at(shin, 0.0, 0.0, -0.3), 0.049),
-                    Geom::Sphere(at(foot, 0.0, 0.0, 0.1), 0.075),
-                ],
-            )
-            .with_mass(vec![
-                inertial(
-                    at(shin, 0.0, 0.0, -0.15),
-                    2.755696,
-                    (0.059745, 0.059745, 0.014552),
-                ),
-                // At the foot body's origin: its sphere is placed by `pos`.
-                inertial(foot, 1.767146, (0.006627, 0.006627, 0.006627)),
-            ]),
-        );
+        let knee = add(hinge(
+            hip_y,
+            at(shin, 0.0, 0.0, 0.02),
+            v(0.0, -1.0, 0.0),
+            (-160.0, -2.0),
+            200.0 * power,
+            // The foot is fixed to the shin (no joint in the model).
+            vec![
+                capsule(shin, at(shin, 0.0, 0.0, -0.3), 0.049),
+                Geom::Sphere(at(foot, 0.0, 0.0, 0.1), 0.075),
+            ],
+        )
+        .with_mass(vec![
+            inertial(
+                at(shin, 0.0, 0.0, -0.15),
+                2.755696,
+                (0.059745, 0.059745, 0.014552),
+            ),
+            // At the foot body's origin: its sphere is placed by `pos`.
+            inertial(foot, 1.767146, (0.006627, 0.006627, 0.006627)),
+        ]));
         feet.push(knee);
     }
     // Right arm then left: y mirrored, and the model's own axes per side.
@@ -392,44 +369,38 @@ fn humanoid() -> RobotDef {
         ),
     ] {
         let upper = at(torso, 0.0, 0.17 * side, 0.06);
-        let first = add(hinge(0, upper, shoulder1, range, 75.0 * power, 1.0, vec![]));
-        let second = add(
-            hinge(
-                first,
-                upper,
-                shoulder2,
-                range,
-                75.0 * power,
-                1.0,
-                vec![capsule(upper, at(upper, 0.16, 0.16 * side, -0.16), 0.04)],
-            )
-            .with_mass(vec![inertial(
-                at(upper, 0.08, 0.08 * side, -0.08),
-                1.66108,
-                (0.028349, 0.028349, 0.028349),
-            )]),
-        );
+        let first = add(hinge(0, upper, shoulder1, range, 75.0 * power, vec![]));
+        let second = add(hinge(
+            first,
+            upper,
+            shoulder2,
+            range,
+            75.0 * power,
+            vec![capsule(upper, at(upper, 0.16, 0.16 * side, -0.16), 0.04)],
+        )
+        .with_mass(vec![inertial(
+            at(upper, 0.08, 0.08 * side, -0.08),
+            1.66108,
+            (0.028349, 0.028349, 0.028349),
+        )]));
         let lower = at(upper, 0.18, 0.18 * side, -0.18);
-        add(
-            hinge(
-                second,
-                lower,
-                elbow,
-                (-90.0, 50.0),
-                75.0 * power,
-                1.0,
-                vec![
-                    capsule(
-                        at(lower, 0.01, -0.01 * side, 0.01),
-                        at(lower, 0.17, -0.17 * side, 0.17),
-                        0.031,
-                    ),
-                    Geom::Sphere(at(lower, 0.18, -0.18 * side, 0.18), 0.04),
-                ],
-            )
-            // At the elbow: the body's last geom is the hand, placed by `pos`.
-            .with_mass(vec![inertial(lower, 1.22954, (0.01869, 0.01869, 0.01869))]),
-        );
+        add(hinge(
+            second,
+            lower,
+            elbow,
+            (-90.0, 50.0),
+            75.0 * power,
+            vec![
+                capsule(
+                    at(lower, 0.01, -0.01 * side, 0.01),
+                    at(lower, 0.17, -0.17 * side, 0.17),
+                    0.031,
+                ),
+                Geom::Sphere(at(lower, 0.18, -0.18 * side, 0.18), 0.04),
+            ],
+        )
+        // At the elbow: the body's last geom is the hand, placed by `pos`.
+        .with_mass(vec![inertial(lower, 1.22954, (0.01869, 0.01869, 0.01869))]));
     }
     RobotDef {
         name: "humanoid",
@@ -561,6 +532,8 @@ impl Spatial {
                     )
                 })
                 .collect();
+            // Now, not at the first step: reset reads the centres of mass.
+            world.bodies[body].recompute_mass_properties_from_colliders(&world.colliders);
             bodies.push(body);
             colliders.push(handles);
         }
@@ -571,13 +544,17 @@ impl Spatial {
                 .local_anchor1(link.origin - self.robot.links[parent].origin)
                 .local_anchor2(Vector::ZERO)
                 .limits([link.range.0, link.range.1])
+                .softness(SpringCoefficients::new(
+                    BULLET_LIMIT_SPRING.0,
+                    BULLET_LIMIT_SPRING.1,
+                ))
                 .contacts_enabled(false);
             let handle = world
                 .insert_multibody_joint(bodies[parent], bodies[k], hinge)
                 .expect("the robot is a tree");
             joint_handles.push(handle);
         }
-        // Joint angles, damping and no default damping elsewhere, then the links' poses from them.
+        // Joint angles and no damping (PyBullet has none), then the links' poses from them.
         if let Some(&first) = joint_handles.first() {
             let (multibody, _) = world
                 .multibody_joints
@@ -586,13 +563,12 @@ impl Spatial {
             multibody.forward_kinematics(&world.bodies, true);
             let mut displacement = vec![0.0; multibody.ndofs()];
             multibody.damping_mut().fill(0.0);
-            for (k, link) in self.robot.links.iter().enumerate().skip(1) {
+            for k in 1..self.robot.links.len() {
                 let dof = multibody
                     .link(k)
                     .expect("links are numbered in insertion order")
                     .assembly_id();
                 displacement[dof] = angles[k - 1];
-                multibody.damping_mut()[dof] = link.damping;
             }
             multibody.apply_displacements(&displacement);
             multibody.forward_kinematics(&world.bodies, true);
@@ -625,7 +601,10 @@ impl Spatial {
         for (link, &body) in self.robot.links.iter().zip(&self.bodies) {
             let pose = self.world.bodies[body].position();
             let anchor = link.parent.map(|_| link.origin);
-            for point in anchor.into_iter().chain(link.inertials.iter().map(|i| i.com)) {
+            for point in anchor
+                .into_iter()
+                .chain(link.inertials.iter().map(|i| i.com))
+            {
                 sum += pose.transform_point(point - link.origin);
                 parts += 1;
             }
@@ -828,14 +807,11 @@ impl Env for Spatial {
     fn reset(&mut self, seed: u64, obs: &mut [f32]) -> Result<(), EnvError> {
         check_obs_len(&self.spec, obs)?;
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        // PyBullet draws U(-0.1, 0.1) per joint; a draw outside the limits (the Ant's ankles)
-        // starts at the limit, where Bullet's limit puts it in the first step.
-        let angles: Vec<f32> = self.robot.links[1..]
-            .iter()
-            .map(|link| {
-                rng.random_range(-0.1f32..0.1)
-                    .clamp(link.range.0, link.range.1)
-            })
+        // PyBullet draws U(-0.1, 0.1) per joint, inside the limits or not (the Ant's ankles
+        // start up to 40 degrees outside theirs, and the limits push them back as the robot
+        // drops).
+        let angles: Vec<f32> = (1..self.robot.links.len())
+            .map(|_| rng.random_range(-0.1f32..0.1))
             .collect();
         self.build(&angles);
         self.initial_z = self
@@ -899,9 +875,32 @@ impl Spatial {
             .sum()
     }
 
-    /// The magnitudes of the robot's total linear momentum and of its angular momentum about
-    /// the origin.
-    pub(super) fn momentum_for_test(&self) -> (f32, f32) {
+    /// The robot's mass (kg) and centre of mass (world, m).
+    pub(super) fn mass_and_centre_for_test(&self) -> (f32, [f32; 3]) {
+        let (mut mass, mut moment) = (0.0, Vector::ZERO);
+        for &h in &self.bodies {
+            let body = &self.world.bodies[h];
+            mass += body.mass();
+            moment += body.center_of_mass() * body.mass();
+        }
+        let c = moment / mass;
+        (mass, [c.x, c.y, c.z])
+    }
+
+    /// Per actuated joint in PyBullet's motor order: its limits (rad) and unit-action torque.
+    pub(super) fn joints_for_test(&self) -> Vec<((f32, f32), f32)> {
+        let links = &self.robot.links[1..];
+        links.iter().map(|l| (l.range, l.torque)).collect()
+    }
+
+    /// How many parts PyBullet's body position averages over (the floor included).
+    pub(super) fn parts_for_test(&self) -> usize {
+        let links = &self.robot.links;
+        1 + links.iter().map(|l| l.inertials.len()).sum::<usize>() + links.len() - 1
+    }
+
+    /// The robot's total linear momentum and its angular momentum about the origin.
+    pub(super) fn momentum_for_test(&self) -> (Vector, Vector) {
         let (mut linear, mut angular) = (Vector::ZERO, Vector::ZERO);
         for &h in &self.bodies {
             let body = &self.world.bodies[h];
@@ -912,7 +911,7 @@ impl Spatial {
             let spin = frame * (local.principal_inertia() * (frame.inverse() * body.angvel()));
             angular += body.center_of_mass().cross(p) + spin;
         }
-        (linear.length(), angular.length())
+        (linear, angular)
     }
 
     /// The largest distance between a hinge's anchor as seen from the parent and the child.

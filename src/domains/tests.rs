@@ -285,9 +285,9 @@ fn the_hopper_weighs_what_the_model_says() {
 #[test]
 fn the_cheetah_never_terminates_and_weighs_what_the_model_says() {
     let mut env = Planar::cheetah();
-    // half_cheetah.xml's capsules (head included) at density 1000: 21.2 kg.
+    // PyBullet's own half_cheetah.xml: capsules at density 1000 and two feet of 10 kg.
     let mass = env.total_mass();
-    assert!((mass - 21.2).abs() < 0.1, "{mass}");
+    assert!((mass - 38.19).abs() < 0.01, "{mass}");
     let mut obs = [0.0f32; 26];
     env.reset(0, &mut obs).unwrap();
     let mut steps = 0;
@@ -412,6 +412,12 @@ fn joint_torques_add_no_momentum_and_multibody_links_stay_jointed() {
         let mut obs = vec![0.0f32; spec.obs_dim];
         env.reset(1, &mut obs).unwrap();
         env.float_freely_for_test();
+        // The reset leaves joints outside their limits (the Ant's ankles, as in PyBullet); let the
+        // limits bring them back before measuring.
+        for _ in 0..60 {
+            env.step(&vec![0.0; spec.act_dim], &mut obs).unwrap();
+        }
+        let (linear_before, angular_before) = env.momentum_for_test();
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         // The angular impulse the joints applied: what one-sided torques would have added.
         let mut impulse = 0.0;
@@ -422,17 +428,21 @@ fn joint_torques_add_no_momentum_and_multibody_links_stay_jointed() {
             impulse += env.torque_impulse_for_test(&action);
             env.step(&action, &mut obs).unwrap();
         }
-        // What is left is the multibody integrator's drift, about 1% of that impulse.
-        let (linear, angular) = env.momentum_for_test();
+        // What is left is the multibody integrator's drift when joints run into their limits:
+        // under 1% of that impulse for the Ant, 3-6% for the Humanoid, whose joints hit theirs
+        // far more often (one-sided torques would add about all of it).
+        let (linear_after, angular_after) = env.momentum_for_test();
+        let linear = (linear_after - linear_before).length();
+        let angular = (angular_after - angular_before).length();
         assert!(impulse > 100.0, "{}: {impulse}", spec.name);
         assert!(
-            linear < 0.02 * impulse,
-            "{}: linear momentum {linear}",
+            linear < 0.1 * impulse,
+            "{}: linear momentum {linear}, impulse {impulse}",
             spec.name
         );
         assert!(
-            angular < 0.02 * impulse,
-            "{}: angular momentum {angular}",
+            angular < 0.1 * impulse,
+            "{}: angular momentum {angular}, impulse {impulse}",
             spec.name
         );
         let gap = env.largest_joint_gap_for_test();
@@ -506,4 +516,72 @@ fn the_walkers_reward_terms_sum_to_their_reward() {
         }
     }
     assert!(make("pendulum").unwrap().reward_terms().is_empty());
+}
+
+/// The robots as PyBullet 3.2.7 simulates them, read back from it by
+/// scripts/conformance/pybullet_bodies.py.
+const PYBULLET_BODIES: &str = include_str!("../../tests/fixtures/pybullet-bodies.json");
+
+#[test]
+fn the_walkers_weigh_bend_and_push_as_in_pybullet() {
+    let fixture: serde_json::Value = serde_json::from_str(PYBULLET_BODIES).unwrap();
+    let f32_of = |v: &serde_json::Value| v.as_f64().unwrap() as f32;
+    type Measured = ((f32, [f32; 3]), Vec<((f32, f32), f32)>, usize);
+    let robots: [(&str, Measured); 5] = [
+        ("hopper", {
+            let e = Planar::hopper();
+            (e.mass_and_centre_for_test(), e.joints_for_test(), e.parts_for_test())
+        }),
+        ("walker", {
+            let e = Planar::walker();
+            (e.mass_and_centre_for_test(), e.joints_for_test(), e.parts_for_test())
+        }),
+        ("cheetah", {
+            let e = Planar::cheetah();
+            (e.mass_and_centre_for_test(), e.joints_for_test(), e.parts_for_test())
+        }),
+        ("ant", {
+            let e = Spatial::ant();
+            (e.mass_and_centre_for_test(), e.joints_for_test(), e.parts_for_test())
+        }),
+        ("humanoid", {
+            let e = Spatial::humanoid();
+            (e.mass_and_centre_for_test(), e.joints_for_test(), e.parts_for_test())
+        }),
+    ];
+    for (name, ((mass, centre), joints, parts)) in robots {
+        let robot = &fixture[name];
+        let links = robot["links"].as_array().unwrap();
+        // Mass and centre of mass with every joint at 0 (links that only chain hinges weigh
+        // 10 g here and nothing there; the Humanoid's near-identity body quaternions, dropped
+        // here, move its feet by up to 8 mm there).
+        let their_mass: f32 = links.iter().map(|l| f32_of(&l["mass"])).sum();
+        assert!((mass - their_mass).abs() < 0.1, "{name}: {mass} kg against {their_mass}");
+        for axis in 0..3 {
+            let moment: f32 = links
+                .iter()
+                .map(|l| f32_of(&l["mass"]) * f32_of(&l["com"][axis]))
+                .sum();
+            let theirs = moment / their_mass;
+            assert!(
+                (centre[axis] - theirs).abs() < 3e-3,
+                "{name}: centre of mass axis {axis} at {} against {theirs}",
+                centre[axis]
+            );
+        }
+        // Limits and torques per motor, in PyBullet's order.
+        let motors = robot["motors"].as_array().unwrap();
+        assert_eq!(joints.len(), motors.len(), "{name}");
+        for (((lo, hi), torque), motor) in joints.iter().zip(motors) {
+            let joint = motor["joint"].as_str().unwrap();
+            let link = links.iter().find(|l| l["joint"] == joint).unwrap();
+            let range = &link["range"];
+            assert!(
+                (lo - f32_of(&range[0])).abs() < 1e-3 && (hi - f32_of(&range[1])).abs() < 1e-3,
+                "{name} {joint}: {lo}..{hi} against {range}"
+            );
+            assert_eq!(*torque, f32_of(&motor["torque"]), "{name} {joint}");
+        }
+        assert_eq!(parts, robot["parts"].as_array().unwrap().len(), "{name}");
+    }
 }
