@@ -530,23 +530,43 @@ fn the_walkers_weigh_bend_and_push_as_in_pybullet() {
     let robots: [(&str, Measured); 5] = [
         ("hopper", {
             let e = Planar::hopper();
-            (e.mass_and_centre_for_test(), e.joints_for_test(), e.parts_for_test())
+            (
+                e.mass_and_centre_for_test(),
+                e.joints_for_test(),
+                e.parts_for_test(),
+            )
         }),
         ("walker", {
             let e = Planar::walker();
-            (e.mass_and_centre_for_test(), e.joints_for_test(), e.parts_for_test())
+            (
+                e.mass_and_centre_for_test(),
+                e.joints_for_test(),
+                e.parts_for_test(),
+            )
         }),
         ("cheetah", {
             let e = Planar::cheetah();
-            (e.mass_and_centre_for_test(), e.joints_for_test(), e.parts_for_test())
+            (
+                e.mass_and_centre_for_test(),
+                e.joints_for_test(),
+                e.parts_for_test(),
+            )
         }),
         ("ant", {
             let e = Spatial::ant();
-            (e.mass_and_centre_for_test(), e.joints_for_test(), e.parts_for_test())
+            (
+                e.mass_and_centre_for_test(),
+                e.joints_for_test(),
+                e.parts_for_test(),
+            )
         }),
         ("humanoid", {
             let e = Spatial::humanoid();
-            (e.mass_and_centre_for_test(), e.joints_for_test(), e.parts_for_test())
+            (
+                e.mass_and_centre_for_test(),
+                e.joints_for_test(),
+                e.parts_for_test(),
+            )
         }),
     ];
     for (name, ((mass, centre), joints, parts)) in robots {
@@ -556,7 +576,10 @@ fn the_walkers_weigh_bend_and_push_as_in_pybullet() {
         // 10 g here and nothing there; the Humanoid's near-identity body quaternions, dropped
         // here, move its feet by up to 8 mm there).
         let their_mass: f32 = links.iter().map(|l| f32_of(&l["mass"])).sum();
-        assert!((mass - their_mass).abs() < 0.1, "{name}: {mass} kg against {their_mass}");
+        assert!(
+            (mass - their_mass).abs() < 0.1,
+            "{name}: {mass} kg against {their_mass}"
+        );
         for axis in 0..3 {
             let moment: f32 = links
                 .iter()

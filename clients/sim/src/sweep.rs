@@ -24,6 +24,8 @@ pub struct SweepRow {
     pub return_mean: f64,
     pub replans_per_step: f64,
     pub episodes: usize,
+    /// Episodes a walker ended by falling (None for tasks without falls).
+    pub falls: Option<usize>,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -119,6 +121,10 @@ pub async fn run(
             )
             .0,
             episodes: results.len(),
+            falls: results
+                .iter()
+                .all(|e| e.distance.is_some())
+                .then(|| results.iter().filter(|e| e.terminated).count()),
         });
     }
     bar.finish_and_clear();
@@ -132,7 +138,19 @@ pub async fn run(
     })
 }
 
-pub const CSV_HEADER: &str = "coef,epsilon,np,np_std,forecast,forecast_std,bound,discounted_return,return,replans_per_step,episodes";
+pub const CSV_HEADER: &str = "coef,epsilon,np,np_std,forecast,forecast_std,bound,discounted_return,return,replans_per_step,episodes,falls";
+
+impl Sweep {
+    /// The largest coefficient whose episodes fell no more often than at eps 0 (walkers only).
+    pub fn largest_coef_without_more_falls(&self) -> Option<f64> {
+        let baseline = self.rows.iter().find(|r| r.coef == 0.0)?.falls?;
+        self.rows
+            .iter()
+            .filter(|r| r.falls.is_some_and(|f| f <= baseline))
+            .map(|r| r.coef)
+            .reduce(f64::max)
+    }
+}
 
 /// Writes DIR/sweep.csv, DIR/sweep.md and DIR/sweep.png.
 pub fn write(sweep: &Sweep, dir: &Path) -> anyhow::Result<()> {
@@ -141,7 +159,7 @@ pub fn write(sweep: &Sweep, dir: &Path) -> anyhow::Result<()> {
     for r in &sweep.rows {
         writeln!(
             csv,
-            "{},{},{},{},{},{},{},{},{},{},{}",
+            "{},{},{},{},{},{},{},{},{},{},{},{}",
             r.coef,
             r.epsilon,
             r.np,
@@ -152,14 +170,15 @@ pub fn write(sweep: &Sweep, dir: &Path) -> anyhow::Result<()> {
             r.discounted_return,
             r.return_mean,
             r.replans_per_step,
-            r.episodes
+            r.episodes,
+            r.falls.map_or(String::new(), |f| f.to_string())
         )?;
     }
     std::fs::write(dir.join("sweep.csv"), csv)?;
 
     let mut md = format!(
         "# PrAC sweep: {} ({})\n\nV_pi(s0) = {:.3}, V_rand(s0) = {:.3}, gamma = {}; {} episodes per coefficient.\n\n\
-         | eps coef | eps | NP | NP std | forecast | forecast std | Lemma-1 bound | return |\n|---|---|---|---|---|---|---|---|\n",
+         | eps coef | eps | NP | NP std | forecast | forecast std | Lemma-1 bound | return | falls |\n|---|---|---|---|---|---|---|---|---|\n",
         sweep.policy,
         sweep.domain,
         sweep.v_pi,
@@ -170,8 +189,23 @@ pub fn write(sweep: &Sweep, dir: &Path) -> anyhow::Result<()> {
     for r in &sweep.rows {
         writeln!(
             md,
-            "| {} | {:.4} | {:.3} | {:.3} | {:.2} | {:.2} | {:.3} | {:.1} |",
-            r.coef, r.epsilon, r.np, r.np_std, r.forecast, r.forecast_std, r.bound, r.return_mean
+            "| {} | {:.4} | {:.3} | {:.3} | {:.2} | {:.2} | {:.3} | {:.1} | {} |",
+            r.coef,
+            r.epsilon,
+            r.np,
+            r.np_std,
+            r.forecast,
+            r.forecast_std,
+            r.bound,
+            r.return_mean,
+            r.falls
+                .map_or("-".to_string(), |f| format!("{f}/{}", r.episodes))
+        )?;
+    }
+    if let Some(coef) = sweep.largest_coef_without_more_falls() {
+        writeln!(
+            md,
+            "\nLargest coefficient with no more falls than at eps 0: {coef}."
         )?;
     }
     std::fs::write(dir.join("sweep.md"), md)?;
@@ -224,4 +258,46 @@ pub fn write(sweep: &Sweep, dir: &Path) -> anyhow::Result<()> {
         ],
         (1100, 450),
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(coef: f64, falls: Option<usize>) -> SweepRow {
+        SweepRow {
+            coef,
+            epsilon: 0.0,
+            np: 1.0,
+            np_std: 0.0,
+            forecast: 1.0,
+            forecast_std: 0.0,
+            bound: 1.0,
+            discounted_return: 0.0,
+            return_mean: 0.0,
+            replans_per_step: 0.0,
+            episodes: 20,
+            falls,
+        }
+    }
+
+    fn sweep(rows: Vec<SweepRow>) -> Sweep {
+        Sweep {
+            policy: "p".into(),
+            domain: "hopper".into(),
+            gamma: 0.98,
+            v_pi: 1.0,
+            v_rand: 0.0,
+            rows,
+        }
+    }
+
+    #[test]
+    fn the_largest_coefficient_is_the_last_that_falls_no_more_than_eps_zero() {
+        let rows = [(0.0, 1), (0.001, 0), (0.003, 1), (0.005, 4), (0.01, 7)];
+        let s = sweep(rows.iter().map(|&(c, f)| row(c, Some(f))).collect());
+        assert_eq!(s.largest_coef_without_more_falls(), Some(0.003));
+        let none = sweep(vec![row(0.0, None), row(0.01, None)]);
+        assert_eq!(none.largest_coef_without_more_falls(), None);
+    }
 }
