@@ -23,8 +23,8 @@ use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, wrap_angle};
 const SIDE: f32 = 0.03;
 /// PyBullet's stadium floor friction (0.8), multiplied by the geom's as Bullet combines them.
 const FLOOR_FRICTION: f32 = 0.8;
-/// Links that only chain several hinges of one MuJoCo body: no shape, a token mass so the link
-/// has a well-defined inertia.
+/// Links that only chain several hinges of one MuJoCo body: no shape, and a token mass (massless
+/// in PyBullet) so that rapier's multibody gives the link a well-defined inertia.
 const CHAIN_LINK_MASS: f32 = 0.01;
 
 #[derive(Clone, Copy)]
