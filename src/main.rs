@@ -63,6 +63,17 @@ enum Command {
         #[arg(long)]
         json: Option<PathBuf>,
     },
+    /// Plays given actions from given states of a planar walker (PyBullet's states, as
+    /// scripts/conformance records them) and writes each step's observation, reward terms and
+    /// end as JSON: our physics against PyBullet's from matched states.
+    PlayFromStates {
+        /// JSON: {"domain": "hopper", "cases": [{"state": {"root", "root_velocity", "joints",
+        /// "joint_velocities"}, "actions": [[...], ...]}, ...]}.
+        input: PathBuf,
+        /// Where the steps go (JSON).
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// Draw a domain (side view) to a PNG, optionally with a policy's imagined plan overlaid.
     Render {
         domain: String,
@@ -189,6 +200,9 @@ fn main() -> ExitCode {
                     None => Ok(()),
                 }
             })
+        }
+        Command::PlayFromStates { input, out } => {
+            prac::cli::domains::play_from_states(&input, &out)
         }
         Command::Render {
             domain,

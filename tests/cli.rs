@@ -1,5 +1,5 @@
-//! `prac inspect` on bundles written by test code, `prac evaluate` on a shipped one, and
-//! `prac bench-replan --bundle`.
+//! `prac inspect` on bundles written by test code, `prac evaluate` on a shipped one,
+//! `prac bench-replan --bundle` and `prac play-from-states` on PyBullet's states.
 
 mod common;
 
@@ -220,4 +220,74 @@ fn bench_replan_on_a_bundle_plays_its_domain_and_refuses_a_foreign_one() {
     assert!(!out.status.success());
     let err = String::from_utf8(out.stderr).unwrap();
     assert!(err.contains("domain"), "{err}");
+}
+
+#[test]
+fn play_from_states_plays_pybullets_states_and_refuses_bad_ones() {
+    let fixture: serde_json::Value = serde_json::from_str(include_str!(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/fixtures/pybullet-states.json"
+    )))
+    .unwrap();
+    let case = &fixture["walker"][0];
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("cases.json");
+    let output = dir.path().join("ours.json");
+    let play = |domain: &str, state: &serde_json::Value| {
+        let cases = serde_json::json!({
+            "domain": domain,
+            "cases": [{"state": state, "actions": vec![case["action"].clone(); 3]}],
+        });
+        std::fs::write(&input, cases.to_string()).unwrap();
+        prac(&[
+            "play-from-states",
+            input.to_str().unwrap(),
+            "--out",
+            output.to_str().unwrap(),
+        ])
+    };
+    let out = play("walker", &case["state"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let played: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&output).unwrap()).unwrap();
+    let start = played[0]["start"].as_array().unwrap();
+    // The torso's height, speeds and pitch as PyBullet observes them in that state.
+    for i in [0, 3, 5, 7] {
+        let (ours, theirs) = (start[i].as_f64().unwrap(), case["obs"][i].as_f64().unwrap());
+        assert!(
+            (ours - theirs).abs() < 2e-3,
+            "obs[{i}] {ours} against {theirs}"
+        );
+    }
+    let steps = played[0]["steps"].as_array().unwrap();
+    assert!(!steps.is_empty() && steps.len() <= 3);
+    for step in steps {
+        let terms = step["reward_terms"].as_object().unwrap();
+        let names: Vec<&str> = terms.keys().map(String::as_str).collect();
+        assert_eq!(
+            names,
+            ["alive", "electricity", "joints_at_limit", "progress"]
+        );
+        let sum: f64 = terms.values().map(|v| v.as_f64().unwrap()).sum();
+        assert!(
+            (sum - step["reward"].as_f64().unwrap()).abs() < 1e-6,
+            "{step}"
+        );
+    }
+
+    let not_planar = play("ant", &case["state"]);
+    assert!(!not_planar.status.success());
+    let stderr = String::from_utf8(not_planar.stderr).unwrap();
+    assert!(stderr.contains("ant is not a planar walker"), "{stderr}");
+
+    let mut short = case["state"].clone();
+    short["joints"].as_array_mut().unwrap().pop();
+    let refused = play("walker", &short);
+    assert!(!refused.status.success());
+    let stderr = String::from_utf8(refused.stderr).unwrap();
+    assert!(stderr.contains("joint angles"), "{stderr}");
 }

@@ -1,12 +1,16 @@
-//! `prac domains` (the table of domains) and `prac bench-domains` (env speed and random-policy
-//! returns).
+//! `prac domains` (the table of domains), `prac bench-domains` (env speed and random-policy
+//! returns) and `prac play-from-states` (a planar walker from PyBullet's states).
 
 use std::time::{Duration, Instant};
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::domains::{DOMAINS, EpisodeTotals, make};
+use std::path::Path;
+
+use anyhow::Context;
+
+use crate::domains::{DOMAINS, Env, EpisodeTotals, Planar, PlanarState, make};
 use crate::train::eval::mean_std;
 
 pub fn table() -> String {
@@ -158,4 +162,75 @@ pub fn report(rows: &[DomainBench], episodes: usize, gamma: f64) -> String {
         ));
     }
     out
+}
+
+/// What `prac play-from-states` reads: a planar domain and, per case, a state and the actions
+/// to play from it.
+#[derive(serde::Deserialize)]
+struct StateCases {
+    domain: String,
+    cases: Vec<StateCase>,
+}
+
+#[derive(serde::Deserialize)]
+struct StateCase {
+    state: PlanarState,
+    actions: Vec<Vec<f32>>,
+}
+
+/// One step played from a matched state.
+#[derive(serde::Serialize)]
+struct PlayedStep {
+    obs: Vec<f32>,
+    reward: f64,
+    reward_terms: std::collections::BTreeMap<&'static str, f64>,
+    terminated: bool,
+}
+
+#[derive(serde::Serialize)]
+struct PlayedCase {
+    /// The observation of the set state, then one row per step played (a case stops where its
+    /// episode ends).
+    start: Vec<f32>,
+    steps: Vec<PlayedStep>,
+}
+
+/// Plays every case of `input` (see [`StateCases`]) and writes the observations and reward
+/// terms to `out`.
+pub fn play_from_states(input: &Path, out: &Path) -> anyhow::Result<()> {
+    let text =
+        std::fs::read_to_string(input).with_context(|| format!("reading {}", input.display()))?;
+    let cases: StateCases =
+        serde_json::from_str(&text).with_context(|| format!("parsing {}", input.display()))?;
+    let mut env = Planar::named(&cases.domain).with_context(|| {
+        format!(
+            "{} is not a planar walker (hopper, walker, cheetah)",
+            cases.domain
+        )
+    })?;
+    let mut obs = vec![0.0; env.spec().obs_dim];
+    let mut played = Vec::with_capacity(cases.cases.len());
+    for (k, case) in cases.cases.iter().enumerate() {
+        env.set_state(&case.state, &mut obs)
+            .with_context(|| format!("case {k}"))?;
+        let start = obs.clone();
+        let mut steps = Vec::with_capacity(case.actions.len());
+        for action in &case.actions {
+            let t = env
+                .step(action, &mut obs)
+                .with_context(|| format!("case {k}, step {}", steps.len()))?;
+            steps.push(PlayedStep {
+                obs: obs.clone(),
+                reward: t.reward,
+                reward_terms: env.reward_terms().iter().copied().collect(),
+                terminated: t.terminated,
+            });
+            if t.terminated || t.truncated {
+                break;
+            }
+        }
+        played.push(PlayedCase { start, steps });
+    }
+    std::fs::write(out, serde_json::to_string(&played)?)
+        .with_context(|| format!("writing {}", out.display()))
 }

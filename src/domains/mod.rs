@@ -14,7 +14,7 @@ mod walker_base;
 pub use episode::EpisodeTotals;
 pub use lander::Lander;
 pub use pendulum::Pendulum;
-pub use planar::Planar;
+pub use planar::{Planar, PlanarState};
 pub use scene::{Part, Scene, Shape};
 pub use spatial::Spatial;
 
@@ -78,6 +78,19 @@ pub enum EnvError {
     NonFiniteAction { index: usize, value: f32 },
     #[error("the episode is over; call reset first")]
     EpisodeOver,
+    #[error("state has {got} {what}; {domain} has {expected}")]
+    StateLength {
+        domain: &'static str,
+        what: &'static str,
+        got: usize,
+        expected: usize,
+    },
+    #[error("state {what}[{index}] is {value}; every value must be finite")]
+    NonFiniteState {
+        what: &'static str,
+        index: usize,
+        value: f32,
+    },
     #[error("observation buffer has {got} values; {domain} writes {expected}")]
     ObservationLength {
         domain: &'static str,
@@ -164,9 +177,7 @@ pub const DOMAINS: &[&str] = &[
 pub fn make(name: &str) -> Option<Box<dyn Env>> {
     match name {
         "lander" => Some(Box::new(Lander::new())),
-        "hopper" => Some(Box::new(Planar::hopper())),
-        "walker" => Some(Box::new(Planar::walker())),
-        "cheetah" => Some(Box::new(Planar::cheetah())),
+        "hopper" | "walker" | "cheetah" => Planar::named(name).map(|p| Box::new(p) as Box<dyn Env>),
         "ant" => Some(Box::new(Spatial::ant())),
         "humanoid" => Some(Box::new(Spatial::humanoid())),
         "pendulum" => Some(Box::new(Pendulum::new())),

@@ -275,6 +275,25 @@ fn cheetah() -> RobotDef {
     }
 }
 
+/// `v` turned counter-clockwise by `angle` (rad).
+fn rotate(v: Vector, angle: f32) -> Vector {
+    let (sin, cos) = angle.sin_cos();
+    Vector::new(cos * v.x - sin * v.y, sin * v.x + cos * v.y)
+}
+
+/// A planar walker's state in PyBullet's coordinates: the root's x and z slides and its pitch
+/// hinge (the models' `ignorex`, `ignorez` and `ignorey` joints, which pivot where the torso's
+/// frame is at rest), their speeds, and every actuated joint's angle and speed (rad, rad/s) in
+/// PyBullet's joint order and sign. Read from PyBullet with getJointState, it poses our robot as
+/// PyBullet's was ([`Planar::set_state`]).
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct PlanarState {
+    pub root: [f32; 3],
+    pub root_velocity: [f32; 3],
+    pub joints: Vec<f32>,
+    pub joint_velocities: Vec<f32>,
+}
+
 /// A planar walker (Hopper, Walker2D, HalfCheetah).
 pub struct Planar {
     robot: RobotDef,
@@ -301,6 +320,16 @@ impl Planar {
 
     pub fn cheetah() -> Planar {
         Planar::new(cheetah())
+    }
+
+    /// The planar walker of that domain name.
+    pub fn named(name: &str) -> Option<Planar> {
+        match name {
+            "hopper" => Some(Planar::hopper()),
+            "walker" => Some(Planar::walker()),
+            "cheetah" => Some(Planar::cheetah()),
+            _ => None,
+        }
     }
 
     fn new(robot: RobotDef) -> Planar {
@@ -330,12 +359,18 @@ impl Planar {
             episode,
             joint_state: vec![0.0; 2 * n],
         };
-        env.build(&vec![0.0; n]);
+        env.build(&PlanarState {
+            joints: vec![0.0; n],
+            joint_velocities: vec![0.0; n],
+            ..PlanarState::default()
+        });
         env
     }
 
-    /// A fresh world with the robot posed at the given joint angles.
-    fn build(&mut self, angles: &[f32]) {
+    /// A fresh world with the robot in the given state (its lengths checked by the caller).
+    fn build(&mut self, state: &PlanarState) {
+        // The free root's generalised coordinates: x, z, then its angle.
+        const ROOT_ANGLE_DOF: usize = 2;
         let mut world = PhysicsWorld {
             gravity: Vector::new(0.0, -GRAVITY),
             ..Default::default()
@@ -358,14 +393,24 @@ impl Planar {
             .iter()
             .map(|l| Vector::new(l.origin.0, l.origin.1))
             .collect();
+        // The root's slides move its pivot; its hinge (about +y, clockwise in our x-z plane)
+        // turns the torso about it.
+        let [x, z, pitch] = state.root;
+        let pivot = Vector::new(self.robot.root.0, self.robot.root.1);
+        let moved_pivot = pivot + Vector::new(x, z);
+        let root_origin = moved_pivot + rotate(origins[0] - pivot, -pitch);
         let mut bodies = Vec::new();
         let mut colliders = Vec::new();
-        for (link, origin) in self.robot.links.iter().zip(&origins) {
+        for (k, (link, origin)) in self.robot.links.iter().zip(&origins).enumerate() {
             let inertial = &link.inertial;
             let com = Vector::new(inertial.com.0, inertial.com.1) - *origin;
+            // The root's pitch is a displacement below: rapier2d's free root joint keeps its
+            // angle in a coordinate that a body's rotation does not set, so the first step
+            // would turn a rotated body back.
+            let at = if k == 0 { root_origin } else { *origin };
             let body = world.insert_body(
                 RigidBodyBuilder::dynamic()
-                    .translation(*origin)
+                    .translation(at)
                     .additional_mass_properties(MassProperties::new(
                         com,
                         inertial.mass,
@@ -428,21 +473,89 @@ impl Planar {
             multibody.forward_kinematics(&world.bodies, true);
             multibody.damping_mut().fill(0.0);
             let mut displacement = vec![0.0; multibody.ndofs()];
-            for (joint, &q) in self.robot.joints.iter().zip(angles) {
+            let mut joint_speeds = vec![0.0; multibody.ndofs()];
+            for (k, joint) in self.robot.joints.iter().enumerate() {
                 let dof = multibody
                     .link(joint.child)
                     .expect("links are numbered in insertion order")
                     .assembly_id();
-                displacement[dof] = joint.axis * q;
+                displacement[dof] = joint.axis * state.joints[k];
+                joint_speeds[dof] = joint.axis * state.joint_velocities[k];
             }
+            displacement[ROOT_ANGLE_DOF] = -pitch;
             multibody.apply_displacements(&displacement);
-            multibody.forward_kinematics(&world.bodies, true);
+            multibody.forward_kinematics(&world.bodies, false);
             multibody.update_rigid_bodies(&mut world.bodies, true);
+            // The root's speed: its pivot's slide speeds plus its spin about the pivot, at the
+            // torso's centre of mass.
+            let [vx, vz, pitch_rate] = state.root_velocity;
+            let spin = -pitch_rate;
+            let arm = world.bodies[bodies[0]].center_of_mass() - moved_pivot;
+            let root_velocity = nalgebra::Vector3::new(vx - spin * arm.y, vz + spin * arm.x, spin);
+            // The generalised root speeds that give it: the root's jacobian over its own
+            // (free) coordinates is invertible.
+            let root_jacobian = multibody
+                .body_jacobian(0)
+                .fixed_columns::<3>(0)
+                .into_owned();
+            let root_speeds = root_jacobian
+                .try_inverse()
+                .expect("a free root's jacobian is invertible")
+                * root_velocity;
+            let mut speeds = multibody.generalized_velocity_mut();
+            for (dof, speed) in joint_speeds.iter().enumerate() {
+                speeds[dof] = if dof < 3 { root_speeds[dof] } else { *speed };
+            }
+            // Each link's velocity now, as the solver will see it from the generalised speeds.
+            let speeds = multibody.generalized_velocity().into_owned();
+            for (k, &body) in bodies.iter().enumerate() {
+                let velocity = multibody.body_jacobian(k) * &speeds;
+                let body = &mut world.bodies[body];
+                body.set_linvel(Vector::new(velocity[0], velocity[1]), false);
+                body.set_angvel(velocity[2], false);
+            }
         }
         self.world = world;
         self.ground = ground;
         self.bodies = bodies;
         self.colliders = colliders;
+    }
+
+    /// Starts an episode from PyBullet's state (as the reset would, initial height included) and
+    /// writes its observation. A state of the wrong shape or with a non-finite value changes
+    /// nothing.
+    pub fn set_state(&mut self, state: &PlanarState, obs: &mut [f32]) -> Result<(), EnvError> {
+        check_obs_len(&self.spec, obs)?;
+        let n = self.robot.joints.len();
+        let fields: [(&'static str, &[f32], usize); 4] = [
+            ("root values", &state.root, 3),
+            ("root speeds", &state.root_velocity, 3),
+            ("joint angles", &state.joints, n),
+            ("joint speeds", &state.joint_velocities, n),
+        ];
+        for (what, values, expected) in fields {
+            if values.len() != expected {
+                return Err(EnvError::StateLength {
+                    domain: self.spec.name,
+                    what,
+                    got: values.len(),
+                    expected,
+                });
+            }
+            if let Some(index) = values.iter().position(|v| !v.is_finite()) {
+                return Err(EnvError::NonFiniteState {
+                    what,
+                    index,
+                    value: values[index],
+                });
+            }
+        }
+        self.build(state);
+        // Where a reset's torso starts (the root does not move at reset).
+        self.initial_z = self.robot.links[0].origin.1;
+        self.episode.start(self.potential());
+        self.observe(obs);
+        Ok(())
     }
 
     /// The robot's mass in kg.
@@ -523,6 +636,19 @@ impl Planar {
         }
     }
 
+    /// PyBullet's alive bonus (+1, or -1 once fallen) at torso height `z`, `pitch` and the
+    /// observed feet `contacts`, and whether falling ends the episode.
+    fn alive_bonus(&self, z: f32, pitch: f32, contacts: &[f32]) -> (f64, bool) {
+        let (alive, ends) = match &self.robot.alive {
+            Alive::Upright { min_z } => (*min_z < z && pitch.abs() < 1.0, true),
+            Alive::NoContact { forbidden } => (
+                pitch.abs() < 1.0 && forbidden.iter().all(|&k| contacts[k] == 0.0),
+                false,
+            ),
+        };
+        (if alive { 1.0 } else { -1.0 }, ends)
+    }
+
     /// PyBullet's calc_state, written into obs; returns (torso z, pitch).
     fn observe(&mut self, obs: &mut [f32]) -> (f32, f32) {
         self.read_joints();
@@ -598,11 +724,13 @@ impl Env for Planar {
     fn reset(&mut self, seed: u64, obs: &mut [f32]) -> Result<(), EnvError> {
         check_obs_len(&self.spec, obs)?;
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let angles: Vec<f32> = (0..self.robot.joints.len())
-            .map(|_| rng.random_range(-0.1..0.1))
-            .collect();
-        self.build(&angles);
-        self.initial_z = self.torso().translation().y;
+        let n = self.robot.joints.len();
+        self.build(&PlanarState {
+            joints: (0..n).map(|_| rng.random_range(-0.1..0.1)).collect(),
+            joint_velocities: vec![0.0; n],
+            ..PlanarState::default()
+        });
+        self.initial_z = self.robot.links[0].origin.1;
         self.episode.start(self.potential());
         self.observe(obs);
         Ok(())
@@ -616,15 +744,7 @@ impl Env for Planar {
             self.world.step();
         }
         let (z, pitch) = self.observe(obs);
-        let contacts = &obs[MORE + self.joint_state.len()..];
-        let (alive, ends) = match &self.robot.alive {
-            Alive::Upright { min_z } => (*min_z < z && pitch.abs() < 1.0, true),
-            Alive::NoContact { forbidden } => (
-                pitch.abs() < 1.0 && forbidden.iter().all(|&k| contacts[k] == 0.0),
-                false,
-            ),
-        };
-        let alive = if alive { 1.0 } else { -1.0 };
+        let (alive, ends) = self.alive_bonus(z, pitch, &obs[MORE + self.joint_state.len()..]);
         let potential = self.potential();
         Ok(self
             .episode
@@ -651,6 +771,16 @@ impl Planar {
     pub(super) fn joints_for_test(&self) -> Vec<((f32, f32), f32)> {
         let joints = &self.robot.joints;
         joints.iter().map(|j| (j.range, j.torque)).collect()
+    }
+
+    /// What the reward reads at the current state: the parts' mean x, the alive bonus with the
+    /// given feet contacts, and the effort costs of `action`.
+    pub(super) fn scores_for_test(&self, contacts: &[f32], action: &[f32]) -> [f64; 4] {
+        let torso = self.torso();
+        let (z, pitch) = (torso.translation().y, -torso.rotation().angle());
+        let (alive, _) = self.alive_bonus(z, pitch, contacts);
+        let (power, at_limit) = walker_base::effort_cost_terms(action, &self.joint_state, 1.0);
+        [f64::from(self.body_x()), alive, power, at_limit]
     }
 
     /// How many parts PyBullet's body x averages over (the floor included).

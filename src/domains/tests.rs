@@ -608,3 +608,73 @@ fn the_walkers_weigh_bend_and_push_as_in_pybullet() {
         assert_eq!(parts, robot["parts"].as_array().unwrap().len(), "{name}");
     }
 }
+
+/// PyBullet's planar walkers in states random actions brought them to, with what PyBullet
+/// observes and scores there (scripts/conformance/matched_states.py --fixture).
+const PYBULLET_STATES: &str = include_str!("../../tests/fixtures/pybullet-states.json");
+
+#[test]
+fn planar_walkers_set_to_pybullets_states_observe_and_score_as_pybullet() {
+    let fixture: serde_json::Value = serde_json::from_str(PYBULLET_STATES).unwrap();
+    let floats = |v: &serde_json::Value| -> Vec<f32> {
+        let values = v.as_array().unwrap();
+        values.iter().map(|x| x.as_f64().unwrap() as f32).collect()
+    };
+    for name in ["hopper", "walker", "cheetah"] {
+        let mut env = Planar::named(name).unwrap();
+        let mut obs = vec![0.0; env.spec().obs_dim];
+        let cases = fixture[name].as_array().unwrap();
+        assert!(cases.len() >= 3, "{name}");
+        for (k, case) in cases.iter().enumerate() {
+            let state: PlanarState = serde_json::from_value(case["state"].clone()).unwrap();
+            env.set_state(&state, &mut obs).unwrap();
+            // Everything but the feet contacts, which PyBullet keeps from its last step and a
+            // set state has not had.
+            let theirs = floats(&case["obs"]);
+            let feet = walker_base::MORE + 2 * env.spec().act_dim;
+            for i in 0..feet {
+                assert!(
+                    (obs[i] - theirs[i]).abs() < 2e-3,
+                    "{name} case {k}: obs[{i}] {} against {}",
+                    obs[i],
+                    theirs[i]
+                );
+            }
+            let [body_x, alive, power, at_limit] =
+                env.scores_for_test(&theirs[feet..], &floats(&case["action"]));
+            let expect = |what: &str, ours: f64, tolerance: f64| {
+                let theirs = case[what].as_f64().unwrap();
+                assert!(
+                    (ours - theirs).abs() < tolerance,
+                    "{name} case {k}: {what} {ours} against {theirs}"
+                );
+            };
+            expect("body_x", body_x, 1e-3);
+            expect("alive", alive, 1e-9);
+            expect("electricity", power, 1e-3);
+            expect("joints_at_limit", at_limit, 1e-9);
+        }
+    }
+    // A state of the wrong shape or with a NaN is refused and changes nothing.
+    let mut env = Planar::hopper();
+    let mut obs = vec![0.0; env.spec().obs_dim];
+    env.reset(3, &mut obs).unwrap();
+    let before = obs.clone();
+    let short = PlanarState {
+        joints: vec![0.0; 2],
+        joint_velocities: vec![0.0; 3],
+        ..PlanarState::default()
+    };
+    let err = env.set_state(&short, &mut obs).unwrap_err();
+    assert!(err.to_string().contains("2 joint angles"), "{err}");
+    let nan = PlanarState {
+        root: [0.0, f32::NAN, 0.0],
+        joints: vec![0.0; 3],
+        joint_velocities: vec![0.0; 3],
+        ..PlanarState::default()
+    };
+    let err = env.set_state(&nan, &mut obs).unwrap_err();
+    assert!(err.to_string().contains("finite"), "{err}");
+    assert_eq!(obs, before);
+    env.step(&[0.0; 3], &mut obs).unwrap();
+}

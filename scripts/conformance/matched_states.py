@@ -1,0 +1,162 @@
+"""Matched states: records PyBullet's planar walkers (pybullet 3.2.7's pybullet_envs) in states
+reached by random actions, with the actions that follow and what PyBullet observes and rewards
+for them, so that `prac play-from-states` can play the same actions from the same states.
+
+  --out FILE      one JSON file per domain, FILE with {domain} in its name: the states, the
+                  actions, and PyBullet's observations (of the current link poses, see
+                  observe_now) and reward terms after each of them
+  --fixture FILE  a few states per domain with what PyBullet computes at them (observation,
+                  body x, alive bonus, effort costs for a fixed action): the fixture of the tests
+"""
+
+import argparse
+import json
+
+import gym
+import numpy as np
+import pybullet_envs  # noqa: F401  (registers the Bullet environments with gym)
+
+ENVS = {
+    "hopper": "HopperBulletEnv-v0",
+    "walker": "Walker2DBulletEnv-v0",
+    "cheetah": "HalfCheetahBulletEnv-v0",
+}
+TERMS = ["alive", "progress", "electricity", "joints_at_limit"]
+ROOT_JOINTS = ["ignorex", "ignorez", "ignorey"]
+
+
+def joint_index(p, body, name):
+    for j in range(p.getNumJoints(body)):
+        if p.getJointInfo(body, j)[1].decode() == name:
+            return j
+    raise KeyError(name)
+
+
+def read_state(env):
+    """The root's slides and hinge and the actuated joints, as getJointState gives them."""
+    robot = env.unwrapped.robot
+    p = robot._p
+    body = robot.objects[0] if isinstance(robot.objects, tuple) else robot.objects
+    names = {"hopper": ["ignore1", "ignore2", "ignore3"]}.get(
+        robot_name(env), ROOT_JOINTS
+    )
+    root = [p.getJointState(body, joint_index(p, body, n)) for n in names]
+    joints = [p.getJointState(j.bodies[j.bodyIndex], j.jointIndex) for j in robot.ordered_joints]
+    return {
+        "root": [float(s[0]) for s in root],
+        "root_velocity": [float(s[1]) for s in root],
+        "joints": [float(s[0]) for s in joints],
+        "joint_velocities": [float(s[1]) for s in joints],
+    }
+
+
+def robot_name(env):
+    return next(k for k, v in ENVS.items() if v == env.spec.id)
+
+
+def observe_now(robot):
+    """PyBullet's observation of the current state. Its step observes the links' poses and
+    speeds as getLinkState caches them, from before the last substep moved them (one substep,
+    4.1 ms, behind the joints); this recomputes them by forward kinematics first."""
+    client = robot._p
+    cached = client.getLinkState
+
+    def current(body, link, **kwargs):
+        return cached(body, link, **{**kwargs, "computeForwardKinematics": 1})
+
+    client.getLinkState = current
+    try:
+        return robot.calc_state()
+    finally:
+        del client.getLinkState
+
+
+def at_state(env, obs, action):
+    """What PyBullet computes at the current state: its observation (as its step returned it,
+    and recomputed from the current link poses), body x, alive bonus, and the effort costs the
+    given action would have."""
+    robot = env.unwrapped.robot
+    e = env.unwrapped
+    now = observe_now(robot)
+    alive = robot.alive_bonus(now[0] + robot.initial_z, robot.body_rpy[1])
+    electricity = e.electricity_cost * float(np.abs(action * robot.joint_speeds).mean())
+    electricity += e.stall_torque_cost * float(np.square(action).mean())
+    return {
+        "obs": [float(x) for x in now],
+        "obs_as_stepped": [float(x) for x in obs],
+        "body_x": float(robot.body_xyz[0]),
+        "alive": float(alive),
+        "electricity": electricity,
+        "joints_at_limit": e.joints_at_limit_cost * float(robot.joints_at_limit),
+    }
+
+
+def record(name, cases, horizon, seed, fixture):
+    env = gym.make(ENVS[name])
+    rng = np.random.default_rng(seed)
+    out = []
+    episode = 0
+    while len(out) < cases:
+        env.seed(seed + episode)
+        obs = env.reset()
+        episode += 1
+        prefix = int(rng.integers(5, 40))
+        done = False
+        for _ in range(prefix):
+            obs, _, done, _ = env.step(rng.uniform(-1.0, 1.0, size=env.action_space.shape))
+            if done:
+                break
+        if done:
+            continue
+        state = read_state(env)
+        if fixture:
+            action = np.linspace(-0.9, 0.9, env.action_space.shape[0])
+            out.append({"state": state, "action": action.tolist(), **at_state(env, obs, action)})
+            continue
+        robot = env.unwrapped.robot
+        start = observe_now(robot)
+        case = {"state": state, "actions": [], "pybullet": {"start": start.tolist(), "steps": []}}
+        for _ in range(horizon):
+            action = rng.uniform(-1.0, 1.0, size=env.action_space.shape)
+            _, reward, done, _ = env.step(action)
+            case["actions"].append(action.tolist())
+            case["pybullet"]["steps"].append(
+                {
+                    "obs": observe_now(robot).tolist(),
+                    "reward": float(reward),
+                    "reward_terms": dict(zip(TERMS, map(float, env.unwrapped.rewards))),
+                    "terminated": bool(done),
+                }
+            )
+            if done:
+                break
+        out.append(case)
+    env.close()
+    return out
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--domains", default=",".join(ENVS))
+    parser.add_argument("--cases", type=int, default=30)
+    parser.add_argument("--horizon", type=int, default=10)
+    parser.add_argument("--seed", type=int, default=0)
+    group = parser.add_mutually_exclusive_group(required=True)
+    group.add_argument("--out", help="cases file, with {domain} in its name")
+    group.add_argument("--fixture", help="the tests' fixture")
+    args = parser.parse_args()
+    names = args.domains.split(",")
+    if args.fixture:
+        fixture = {n: record(n, args.cases, 0, args.seed, True) for n in names}
+        with open(args.fixture, "w") as f:
+            json.dump(fixture, f, indent=1)
+            f.write("\n")
+        return
+    for n in names:
+        cases = record(n, args.cases, args.horizon, args.seed, False)
+        with open(args.out.format(domain=n), "w") as f:
+            json.dump({"domain": n, "cases": cases}, f)
+
+
+if __name__ == "__main__":
+    main()
