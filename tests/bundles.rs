@@ -100,7 +100,10 @@ fn the_shipped_humanoid_bundle_outlasts_random_actions() {
     let random = random_episodes(env.as_mut(), policy.manifest.gamma, 5, 777_000).unwrap();
     let length = |e: &[Episode]| e.iter().map(|e| e.len as f64).sum::<f64>() / e.len() as f64;
     let (ours, theirs) = (mean_return(&episodes), mean_return(&random));
-    assert!(ours > theirs + 100.0, "return {ours} against random {theirs}");
+    assert!(
+        ours > theirs + 100.0,
+        "return {ours} against random {theirs}"
+    );
     assert!(
         length(&episodes) > 2.0 * length(&random),
         "{} steps against random {}",
