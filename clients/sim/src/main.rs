@@ -43,6 +43,41 @@ struct Cli {
     command: Command,
 }
 
+/// The sessions' plan growth and cap (SessionOptions); the server's defaults are grow 2 and a
+/// cap of 32 actions.
+#[derive(clap::Args, Clone, Copy, Debug)]
+struct PlanArgs {
+    /// Append K policy actions after the kept part of the plan each step [server default: 2].
+    #[arg(long, value_name = "K", conflicts_with = "fixed")]
+    grow: Option<u32>,
+    /// Refill the plan to N actions each step (a fixed horizon) instead of growing it.
+    #[arg(long, value_name = "N")]
+    fixed: Option<u32>,
+    /// Longest plan, the action executed now included [server default: 32, or N with --fixed N].
+    #[arg(long, value_name = "N")]
+    max_horizon: Option<u32>,
+}
+
+impl PlanArgs {
+    fn shape(&self) -> anyhow::Result<play::PlanShape> {
+        use prac::proto::session_options::Growth;
+        for (flag, value) in [
+            ("--grow", self.grow),
+            ("--fixed", self.fixed),
+            ("--max-horizon", self.max_horizon),
+        ] {
+            anyhow::ensure!(value != Some(0), "{flag} must be >= 1");
+        }
+        Ok(play::PlanShape {
+            growth: self
+                .grow
+                .map(Growth::Grow)
+                .or(self.fixed.map(Growth::Fixed)),
+            max_horizon: self.max_horizon.unwrap_or(0),
+        })
+    }
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Play a policy's domain: per-episode return, discounted return, forecast, replans.
@@ -67,6 +102,8 @@ enum Command {
         /// Print the episodes as JSON.
         #[arg(long)]
         json: bool,
+        #[command(flatten)]
+        plan: PlanArgs,
     },
     /// Training-then-PrAC: NP, forecast and the Lemma-1 bound per eps coefficient.
     Sweep {
@@ -84,6 +121,8 @@ enum Command {
         seed: u64,
         #[arg(long)]
         out: PathBuf,
+        #[command(flatten)]
+        plan: PlanArgs,
     },
     /// Training curves (return and forecast against steps) from `prac train` CSVs: every run
     /// into DIR/curves.png and, where NAME.train.csv and NAME-seedK.train.csv are seeds of one
@@ -175,8 +214,10 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
             render,
             render_step,
             json,
+            plan,
         } => {
             anyhow::ensure!(*episodes >= 1, "--episodes must be >= 1");
+            let plan = plan.shape()?;
             let info = served_policy(&mut client, policy, local.as_ref()).await?;
             let tol = match (epsilon, epsilon_coef) {
                 (Some(e), _) => Tol::Absolute(*e),
@@ -188,7 +229,7 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
             for k in 0..*episodes as u64 {
                 let snap_at = (k == 0 && render.is_some()).then_some(*render_step);
                 let (result, snapshot) =
-                    play::play_episode(&mut client, &info, tol, seed + k, snap_at).await?;
+                    play::play_episode(&mut client, &info, tol, plan, seed + k, snap_at).await?;
                 if k == 0 && render.is_some() && snapshot.is_none() {
                     anyhow::bail!(
                         "episode 0 ended after {} steps, before --render-step {render_step}, so \
@@ -255,14 +296,17 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
             episodes,
             seed,
             out,
+            plan,
         } => {
+            let plan = plan.shape()?;
             anyhow::ensure!(
                 coefs.iter().all(|c| c.is_finite() && *c >= 0.0),
                 "--coefs must be >= 0"
             );
             anyhow::ensure!(*episodes >= 2, "--episodes must be >= 2");
             let info = served_policy(&mut client, policy, local.as_ref()).await?;
-            let result = sweep::run(&client, &info, coefs, *episodes, *seed, !cli.quiet).await?;
+            let result =
+                sweep::run(&client, &info, coefs, plan, *episodes, *seed, !cli.quiet).await?;
             sweep::write(&result, out)?;
             print!("{}", std::fs::read_to_string(out.join("sweep.md"))?);
             Ok(())

@@ -5,7 +5,7 @@ use std::path::Path;
 
 use anyhow::{Context, bail};
 use prac::proto::prac_client::PracClient;
-use prac::proto::session_options::Tolerance;
+use prac::proto::session_options::{Growth, Tolerance};
 use prac::proto::{self, PolicyInfo};
 use serde::Serialize;
 use tokio::sync::mpsc;
@@ -19,6 +19,29 @@ pub type Client = PracClient<Channel>;
 pub enum Tol {
     Coef(f64),
     Absolute(f64),
+}
+
+/// How the session's plans grow and how long they may get; `None` / 0 leave the server's
+/// defaults (grow by 2, at most 32 actions).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct PlanShape {
+    pub growth: Option<Growth>,
+    pub max_horizon: u32,
+}
+
+impl PlanShape {
+    /// The shape as `sweep.md` and `play` print it, `None` for the server's defaults.
+    pub fn describe(&self) -> Option<String> {
+        let growth = self.growth.map(|g| match g {
+            Growth::Grow(k) => format!("grow {k}"),
+            Growth::Fixed(n) => format!("fixed {n}"),
+        });
+        let cap = (self.max_horizon > 0).then(|| format!("max horizon {}", self.max_horizon));
+        match (growth, cap) {
+            (None, None) => None,
+            (g, c) => Some(g.into_iter().chain(c).collect::<Vec<_>>().join(", ")),
+        }
+    }
 }
 
 /// One played episode, as the client saw it.
@@ -59,6 +82,7 @@ pub async fn play_episode(
     client: &mut Client,
     info: &PolicyInfo,
     tol: Tol,
+    plan: PlanShape,
     seed: u64,
     snapshot_at: Option<u64>,
 ) -> anyhow::Result<(EpisodeResult, Option<Snapshot>)> {
@@ -86,6 +110,8 @@ pub async fn play_episode(
             Tol::Coef(c) => Tolerance::EpsilonCoef(c),
             Tol::Absolute(e) => Tolerance::Epsilon(e),
         }),
+        growth: plan.growth,
+        max_horizon: plan.max_horizon,
         seed,
         ..Default::default()
     };

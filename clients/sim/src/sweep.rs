@@ -9,7 +9,7 @@ use prac::render::chart::{Panel, Series, line_panels};
 use prac::train::eval::{mean_std, random_episodes};
 use serde::Serialize;
 
-use crate::play::{Client, EpisodeResult, Tol, play_episode};
+use crate::play::{Client, EpisodeResult, PlanShape, Tol, play_episode};
 
 #[derive(Clone, Debug, Serialize)]
 pub struct SweepRow {
@@ -35,6 +35,8 @@ pub struct Sweep {
     pub gamma: f64,
     pub v_pi: f64,
     pub v_rand: f64,
+    /// The plans' growth and cap where they are not the server's defaults.
+    pub plan: Option<String>,
     pub rows: Vec<SweepRow>,
 }
 
@@ -43,6 +45,7 @@ pub async fn play_many(
     client: &Client,
     info: &PolicyInfo,
     tol: Tol,
+    plan: PlanShape,
     episodes: usize,
     seed: u64,
     bar: &indicatif::ProgressBar,
@@ -52,7 +55,7 @@ pub async fn play_many(
         let info = info.clone();
         let bar = bar.clone();
         async move {
-            let (result, _) = play_episode(&mut client, &info, tol, seed + k, None).await?;
+            let (result, _) = play_episode(&mut client, &info, tol, plan, seed + k, None).await?;
             bar.inc(1);
             anyhow::Ok(result)
         }
@@ -64,6 +67,7 @@ pub async fn run(
     client: &Client,
     info: &PolicyInfo,
     coefs: &[f64],
+    plan: PlanShape,
     episodes: usize,
     seed: u64,
     show_progress: bool,
@@ -79,6 +83,7 @@ pub async fn run(
         client,
         info,
         Tol::Absolute(0.0),
+        plan,
         episodes,
         seed + 1_000_000,
         &bar,
@@ -93,7 +98,16 @@ pub async fn run(
     let mut rows = Vec::new();
     for &coef in coefs {
         let epsilon = coef * range;
-        let results = play_many(client, info, Tol::Absolute(epsilon), episodes, seed, &bar).await?;
+        let results = play_many(
+            client,
+            info,
+            Tol::Absolute(epsilon),
+            plan,
+            episodes,
+            seed,
+            &bar,
+        )
+        .await?;
         let np: Vec<f64> = results
             .iter()
             .map(|e| (e.discounted - v_rand) / range)
@@ -134,6 +148,7 @@ pub async fn run(
         gamma,
         v_pi,
         v_rand,
+        plan: plan.describe(),
         rows,
     })
 }
@@ -177,14 +192,18 @@ pub fn write(sweep: &Sweep, dir: &Path) -> anyhow::Result<()> {
     std::fs::write(dir.join("sweep.csv"), csv)?;
 
     let mut md = format!(
-        "# PrAC sweep: {} ({})\n\nV_pi(s0) = {:.3}, V_rand(s0) = {:.3}, gamma = {}; {} episodes per coefficient.\n\n\
+        "# PrAC sweep: {} ({})\n\nV_pi(s0) = {:.3}, V_rand(s0) = {:.3}, gamma = {}; {} episodes per coefficient{}.\n\n\
          | eps coef | eps | NP | NP std | forecast | forecast std | Lemma-1 bound | return | falls |\n|---|---|---|---|---|---|---|---|---|\n",
         sweep.policy,
         sweep.domain,
         sweep.v_pi,
         sweep.v_rand,
         sweep.gamma,
-        sweep.rows.first().map_or(0, |r| r.episodes)
+        sweep.rows.first().map_or(0, |r| r.episodes),
+        sweep
+            .plan
+            .as_ref()
+            .map_or(String::new(), |p| format!("; plans: {p}"))
     );
     for r in &sweep.rows {
         writeln!(
@@ -288,6 +307,7 @@ mod tests {
             gamma: 0.98,
             v_pi: 1.0,
             v_rand: 0.0,
+            plan: None,
             rows,
         }
     }

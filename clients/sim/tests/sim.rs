@@ -311,3 +311,74 @@ fn play_says_what_went_wrong() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("cannot read bundle directory"), "{err}");
 }
+
+#[test]
+fn plans_grow_and_stop_where_the_flags_say() {
+    let forecasts = |extra: &[&str]| -> Vec<f64> {
+        let args = [
+            &[
+                "--policy",
+                "pendulum",
+                "--epsilon-coef",
+                "0.01",
+                "--episodes",
+                "2",
+            ],
+            extra,
+        ]
+        .concat();
+        play_json(&shipped_bundles(), &args)
+            .iter()
+            .map(|e| e["forecast"].as_f64().unwrap())
+            .collect()
+    };
+    // An action runs at most N - 1 steps after the step that decided it.
+    let capped = forecasts(&["--max-horizon", "3"]);
+    assert!(
+        capped.iter().all(|&f| (1.0..=3.0).contains(&f)),
+        "{capped:?}"
+    );
+    let free = forecasts(&[]);
+    assert!(
+        free.iter().sum::<f64>() > capped.iter().sum::<f64>(),
+        "{free:?} {capped:?}"
+    );
+
+    let dir = tempfile::tempdir().unwrap();
+    let out = sim(&[
+        "sweep",
+        "--policy",
+        "pendulum",
+        "--coefs",
+        "0.01",
+        "--episodes",
+        "2",
+        "--fixed",
+        "6",
+        "--max-horizon",
+        "6",
+        "--out",
+        dir.path().to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let md = std::fs::read_to_string(dir.path().join("sweep.md")).unwrap();
+    assert!(
+        md.contains("2 episodes per coefficient; plans: fixed 6, max horizon 6."),
+        "{md}"
+    );
+
+    let out = sim(&["play", "--policy", "pendulum", "--grow", "0"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--grow must be >= 1"));
+    let out = sim(&[
+        "play", "--policy", "pendulum", "--grow", "2", "--fixed", "4",
+    ]);
+    assert!(
+        !out.status.success(),
+        "--grow and --fixed exclude each other"
+    );
+}
