@@ -646,10 +646,6 @@ async fn drains_on(signal: &str) {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn health_and_reflection() {
     use tonic_health::pb::health_check_response::ServingStatus;
-    use tonic_reflection::pb::v1::{
-        ServerReflectionRequest, server_reflection_client::ServerReflectionClient,
-        server_reflection_request::MessageRequest, server_reflection_response::MessageResponse,
-    };
     // No bundles: the server runs but does not claim to serve.
     let empty = tempfile::tempdir().unwrap();
     let server = Server::start(empty.path(), &[]);
@@ -665,25 +661,44 @@ async fn health_and_reflection() {
     let server = Server::start(dir.path(), &[]);
     server.wait_serving().await;
     assert_eq!(server.health("").await, ServingStatus::Serving);
-    let mut reflection = ServerReflectionClient::new(server.channel().await);
-    let (tx, rx) = mpsc::channel(1);
-    tx.send(ServerReflectionRequest {
-        host: String::new(),
-        message_request: Some(MessageRequest::ListServices(String::new())),
-    })
-    .await
-    .unwrap();
-    let mut responses = reflection
-        .server_reflection_info(ReceiverStream::new(rx))
-        .await
-        .unwrap()
-        .into_inner();
-    let response = responses.message().await.unwrap().unwrap();
-    let Some(MessageResponse::ListServicesResponse(list)) = response.message_response else {
-        panic!("unexpected reflection answer");
-    };
-    let names: Vec<String> = list.service.into_iter().map(|s| s.name).collect();
-    assert!(names.contains(&"prac.v1.Prac".to_string()), "{names:?}");
+    // Both reflection versions (v1, and v1alpha for Postman, older grpcurl and others) list
+    // the services.
+    macro_rules! listed_services {
+        ($version:ident) => {{
+            use tonic_reflection::pb::$version::{
+                ServerReflectionRequest, server_reflection_client::ServerReflectionClient,
+                server_reflection_request::MessageRequest,
+                server_reflection_response::MessageResponse,
+            };
+            let mut reflection = ServerReflectionClient::new(server.channel().await);
+            let (tx, rx) = mpsc::channel(1);
+            tx.send(ServerReflectionRequest {
+                host: String::new(),
+                message_request: Some(MessageRequest::ListServices(String::new())),
+            })
+            .await
+            .unwrap();
+            let mut responses = reflection
+                .server_reflection_info(ReceiverStream::new(rx))
+                .await
+                .unwrap()
+                .into_inner();
+            let response = responses.message().await.unwrap().unwrap();
+            let Some(MessageResponse::ListServicesResponse(list)) = response.message_response
+            else {
+                panic!("unexpected reflection answer");
+            };
+            list.service
+                .into_iter()
+                .map(|s| s.name)
+                .collect::<Vec<String>>()
+        }};
+    }
+    for names in [listed_services!(v1), listed_services!(v1alpha)] {
+        for service in ["prac.v1.Prac", "grpc.health.v1.Health"] {
+            assert!(names.iter().any(|n| n == service), "{service}: {names:?}");
+        }
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -712,6 +727,27 @@ async fn bad_bundles_are_skipped_with_their_reason_or_fatal_with_strict() {
         .map(|p| p.name)
         .collect();
     assert_eq!(names, vec!["toy"]);
+    // A client asking for a skipped bundle's policy is told why; any other unknown name hears
+    // which bundles were skipped.
+    let open = |policy: &str| proto::OpenSessionRequest {
+        policy: policy.into(),
+        ..Default::default()
+    };
+    let refused = client.open_session(open("nomodel")).await.unwrap_err();
+    assert_eq!(refused.code(), tonic::Code::NotFound);
+    assert!(
+        refused
+            .message()
+            .contains("'nomodel' is not served: its bundle was skipped (manifest.model: absent"),
+        "{refused:?}"
+    );
+    let refused = client.open_session(open("other")).await.unwrap_err();
+    assert!(
+        refused.message().ends_with(
+            "this server has: toy; bundles skipped (the server's log says why): broken, nomodel"
+        ),
+        "{refused:?}"
+    );
     // JSON logs: one object per line; the bad bundle's line names the file and the reason.
     let log = server.stderr();
     let lines: Vec<serde_json::Value> = log

@@ -234,10 +234,19 @@ pub async fn serve(
     );
     let health = Health(reporter);
     health.set(ServingStatus::NotServing).await;
-    let reflection = tonic_reflection::server::Builder::configure()
-        .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
+    // Reflection in both versions: grpcurl and grpcio's reflection client speak v1, Postman,
+    // older grpcurl and many others v1alpha. Both list prac.v1.Prac and grpc.health.v1.Health.
+    let reflection = || {
+        tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+    };
+    let reflection_v1 = reflection()
         .build_v1()
         .context("building the reflection service")?;
+    let reflection_v1alpha = reflection()
+        .build_v1alpha()
+        .context("building the reflection service (v1alpha)")?;
 
     let state = server_state(config, bound.auth, cancel.clone());
     let prac = PracServer::new(PracService {
@@ -246,7 +255,8 @@ pub async fn serve(
     .max_decoding_message_size(config.max_message_bytes)
     .max_encoding_message_size(config.max_message_bytes);
     let routes = tonic::service::Routes::new(health_service)
-        .add_service(reflection)
+        .add_service(reflection_v1)
+        .add_service(reflection_v1alpha)
         .add_service(prac);
     let server = transport::serve_grpc(
         bound.grpc,

@@ -10,6 +10,9 @@ use crate::policy::Policy;
 #[derive(Default, Clone)]
 pub(super) struct Registry {
     policies: BTreeMap<String, Arc<Policy>>,
+    /// Bundles of the directory that are not served, by the name they would have, with why
+    /// (field and reason, not the server's path): a client asking for one is told.
+    skipped: BTreeMap<String, String>,
 }
 
 /// The bundles of a directory that loaded, and the errors of those that did not.
@@ -33,6 +36,58 @@ impl Registry {
     }
     pub(super) fn names(&self) -> Vec<&str> {
         self.policies.keys().map(String::as_str).collect()
+    }
+
+    /// What a client asking for an unserved `name` is told: why its bundle was skipped, or the
+    /// policies served and the bundles skipped (at most `LISTED` of each, names cut to 64 chars).
+    pub(super) fn not_served(&self, name: &str) -> String {
+        const LISTED: usize = 16;
+        let shown = |name: &str| name.chars().take(64).collect::<String>();
+        if let Some(reason) = self.skipped.get(name) {
+            return format!(
+                "policy '{}' is not served: its bundle was skipped ({reason}); the server's log \
+                 names the file",
+                shown(name)
+            );
+        }
+        let list = |names: Vec<&str>| {
+            let more = names.len().saturating_sub(LISTED);
+            let mut text = names
+                .into_iter()
+                .take(LISTED)
+                .map(shown)
+                .collect::<Vec<_>>()
+                .join(", ");
+            if more > 0 {
+                text.push_str(&format!(" and {more} more"));
+            }
+            text
+        };
+        let mut message = format!(
+            "unknown policy '{}'; this server has: {}",
+            shown(name),
+            if self.policies.is_empty() {
+                "no policies".to_string()
+            } else {
+                list(self.names())
+            }
+        );
+        if !self.skipped.is_empty() {
+            message.push_str(&format!(
+                "; bundles skipped (the server's log says why): {}",
+                list(self.skipped.keys().map(String::as_str).collect())
+            ));
+        }
+        message
+    }
+
+    fn skip(&mut self, error: &BundleError) {
+        if let Some(name) = error.file.file_stem().and_then(|s| s.to_str()) {
+            self.skipped.insert(
+                name.to_string(),
+                format!("{}: {}", error.field, error.reason),
+            );
+        }
     }
 
     /// Loads every `*.safetensors` entry of `dir` (not recursive). A bad bundle is reported in
@@ -85,6 +140,9 @@ impl Registry {
                 Err(e) => errors.push(e),
             }
         }
+        for error in &errors {
+            registry.skip(error);
+        }
         Ok(Loaded { registry, errors })
     }
 
@@ -125,6 +183,8 @@ impl Registry {
             if let Some(old) = self.policies.get(&name) {
                 report.kept_old.push(name.clone());
                 next.policies.insert(name, old.clone());
+            } else {
+                next.skip(&error);
             }
             report.errors.push(error);
         }
@@ -200,5 +260,47 @@ mod tests {
             named[3].contains("not a regular file (a character device)"),
             "{named:?}"
         );
+    }
+
+    #[test]
+    fn a_client_asking_for_a_skipped_bundle_is_told_why() {
+        use crate::testing::toy_policy;
+        let dir = tempfile::tempdir().unwrap();
+        let save = |policy: &Policy, name: &str| {
+            let bytes = bundle::to_bytes(policy).unwrap();
+            std::fs::write(dir.path().join(format!("{name}.safetensors")), bytes).unwrap();
+        };
+        let mut no_model = toy_policy("sb3pend", 1);
+        no_model.manifest.model = None;
+        no_model.model = None;
+        save(&no_model, "sb3pend");
+
+        let only_skipped = Registry::load_dir(dir.path()).unwrap().registry;
+        assert!(only_skipped.is_empty());
+        let told = only_skipped.not_served("sb3pend");
+        assert!(told.contains("'sb3pend' is not served"), "{told}");
+        assert!(told.contains("manifest.model: absent"), "{told}");
+        assert!(told.contains("prac fit-model"), "{told}");
+        assert!(!told.contains(dir.path().to_str().unwrap()), "{told}");
+        let told = only_skipped.not_served("other");
+        assert!(
+            told.contains("this server has: no policies; bundles skipped"),
+            "{told}"
+        );
+        assert!(told.ends_with(": sb3pend"), "{told}");
+
+        // Served once fixed; skipped again when a reload finds it broken and it was never served.
+        save(&toy_policy("sb3pend", 1), "sb3pend");
+        let (fixed, _) = only_skipped.reload(dir.path()).unwrap();
+        assert!(fixed.get("sb3pend").is_some());
+        assert!(!fixed.not_served("other").contains("skipped"));
+        std::fs::write(dir.path().join("late.safetensors"), b"truncated").unwrap();
+        let (with_late, report) = fixed.reload(dir.path()).unwrap();
+        assert_eq!(report.errors.len(), 1);
+        let told = with_late.not_served("late");
+        assert!(told.contains("'late' is not served"), "{told}");
+        assert!(with_late.not_served("nope").contains(
+            "this server has: sb3pend; bundles skipped (the server's log says why): late"
+        ));
     }
 }

@@ -134,11 +134,7 @@ impl ServerState {
     ) -> Result<proto::OpenSessionResponse, Status> {
         let registry = self.registry()?;
         let Some(policy) = registry.get(&request.policy) else {
-            return Err(Status::not_found(format!(
-                "unknown policy '{}'; this server has: {}",
-                request.policy.chars().take(64).collect::<String>(),
-                registry.names().join(", ")
-            )));
+            return Err(Status::not_found(registry.not_served(&request.policy)));
         };
         let settings =
             SessionSettings::resolve(request.options.as_ref(), policy, self.max_horizon_limit)
