@@ -6,7 +6,13 @@ use serde::{Deserialize, Serialize};
 
 use crate::nn::Activation;
 
+/// The version a bundle is written with when it uses nothing newer (every bundle `prac train`
+/// writes): old servers keep reading them.
 pub const FORMAT_VERSION: u32 = 1;
+/// Version 2 adds `actor.kind` and `actor.mean_clip` (actors without a Gaussian head).
+pub const FORMAT_VERSION_ACTOR_KINDS: u32 = 2;
+/// The newest version this prac reads.
+pub const NEWEST_FORMAT_VERSION: u32 = FORMAT_VERSION_ACTOR_KINDS;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Manifest {
@@ -22,7 +28,7 @@ pub struct Manifest {
     pub action_high: Vec<f32>,
     /// Discount of the critics' returns, in (0, 1).
     pub gamma: f64,
-    pub actor: NetSpec,
+    pub actor: ActorSpec,
     pub critic: CriticSpec,
     /// The dynamics model; absent in bundles made from agents trained elsewhere until
     /// `prac fit-model` adds one. The server needs it to imagine plans.
@@ -36,11 +42,49 @@ pub struct Manifest {
     pub provenance: Provenance,
 }
 
-/// Hidden layer widths and their activation.
+/// The actor: its trunk's widths and activation, and what its heads mean.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct NetSpec {
+pub struct ActorSpec {
     pub hidden: Vec<usize>,
     pub activation: Activation,
+    /// Absent in version-1 bundles, which are all Gaussian.
+    #[serde(default, skip_serializing_if = "ActorKind::is_gaussian")]
+    pub kind: ActorKind,
+    /// gSDE actors: the mean is clipped to [-mean_clip, mean_clip] before tanh (SB3's
+    /// `clip_mean`, a Hardtanh after the mean layer); absent where SB3 did not clip.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mean_clip: Option<f32>,
+}
+
+/// What the actor's heads are, and so what a sampled action is.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ActorKind {
+    /// SAC's squashed Gaussian: `tanh(mu + exp(log_std) noise)`, `log_std` a head on the latent
+    /// (`actor.log_std.*`); deterministic action `tanh(mu)`.
+    #[default]
+    Gaussian,
+    /// SAC with generalised state-dependent exploration (SB3 `use_sde`): deterministic action
+    /// `tanh(clip(mu))`. Its noise comes from exploration matrices resampled during training,
+    /// not from the weights, so the bundle has no sampling distribution: sampled sessions are
+    /// refused.
+    GaussianSde,
+    /// TD3 or DDPG: the action is `tanh(mu)` and there is no distribution; sampled sessions are
+    /// refused.
+    Deterministic,
+}
+
+impl ActorKind {
+    pub fn is_gaussian(&self) -> bool {
+        *self == ActorKind::Gaussian
+    }
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ActorKind::Gaussian => "gaussian",
+            ActorKind::GaussianSde => "gaussian_sde",
+            ActorKind::Deterministic => "deterministic",
+        }
+    }
 }
 
 /// The dynamics model: hidden widths, activation and its input/output normalisation.
@@ -126,14 +170,43 @@ impl Manifest {
     /// Checks everything the tensors do not: returns the offending field and why.
     pub fn validate(&self) -> Result<(), (String, String)> {
         let fail = |field: &str, why: String| Err((field.to_string(), why));
-        if self.format_version != FORMAT_VERSION {
+        if !(FORMAT_VERSION..=NEWEST_FORMAT_VERSION).contains(&self.format_version) {
             return fail(
                 "format_version",
                 format!(
-                    "is {}, this prac reads version {FORMAT_VERSION}",
+                    "is {}, this prac reads versions {FORMAT_VERSION} to {NEWEST_FORMAT_VERSION}",
                     self.format_version
                 ),
             );
+        }
+        if self.format_version < FORMAT_VERSION_ACTOR_KINDS
+            && (!self.actor.kind.is_gaussian() || self.actor.mean_clip.is_some())
+        {
+            return fail(
+                "actor.kind",
+                format!(
+                    "needs format_version {FORMAT_VERSION_ACTOR_KINDS}, the bundle says {}",
+                    self.format_version
+                ),
+            );
+        }
+        match (self.actor.kind, self.actor.mean_clip) {
+            (ActorKind::GaussianSde, Some(clip)) if !(clip.is_finite() && clip > 0.0) => {
+                return fail(
+                    "actor.mean_clip",
+                    format!("is {clip}, expected a finite value > 0"),
+                );
+            }
+            (ActorKind::Gaussian | ActorKind::Deterministic, Some(_)) => {
+                return fail(
+                    "actor.mean_clip",
+                    format!(
+                        "is only for gaussian_sde actors, this one is {}",
+                        self.actor.kind.as_str()
+                    ),
+                );
+            }
+            _ => {}
         }
         if self.name.is_empty() {
             return fail("name", "is empty".into());

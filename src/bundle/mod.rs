@@ -265,7 +265,12 @@ fn check_declared_tensors(
     };
     let (obs, act) = (manifest.obs_dim, manifest.act_dim);
     let latent = chain(&mut check, ACTOR_TRUNK, obs, &manifest.actor.hidden, None)?;
-    for head in [ACTOR_MU, ACTOR_LOG_STD] {
+    let heads: &[&str] = if manifest.actor.kind.is_gaussian() {
+        &[ACTOR_MU, ACTOR_LOG_STD]
+    } else {
+        &[ACTOR_MU]
+    };
+    for head in heads {
         check(format!("{head}.weight"), &[act, latent])?;
         check(format!("{head}.bias"), &[act])?;
     }
@@ -343,12 +348,17 @@ pub fn from_bytes(bytes: &[u8], path: &Path) -> Result<Policy, BundleError> {
         act,
         latent,
     )?;
-    let log_std = reader.dense(
-        &format!("{ACTOR_LOG_STD}.weight"),
-        &format!("{ACTOR_LOG_STD}.bias"),
-        act,
-        latent,
-    )?;
+    let log_std = if manifest.actor.kind.is_gaussian() {
+        Some(reader.dense(
+            &format!("{ACTOR_LOG_STD}.weight"),
+            &format!("{ACTOR_LOG_STD}.bias"),
+            act,
+            latent,
+        )?)
+    } else {
+        None
+    };
+    let mean_clip = manifest.actor.mean_clip.unwrap_or(f32::INFINITY);
     let mut critics = Vec::with_capacity(manifest.critic.n_critics);
     for k in 0..manifest.critic.n_critics {
         let prefix = critic_prefix(k);
@@ -373,7 +383,12 @@ pub fn from_bytes(bytes: &[u8], path: &Path) -> Result<Policy, BundleError> {
 
     Ok(Policy {
         content_hash: content_hash(bytes),
-        actor: Actor { trunk, mu, log_std },
+        actor: Actor {
+            trunk,
+            mu,
+            log_std,
+            mean_clip,
+        },
         critics,
         model,
         manifest,
@@ -473,7 +488,9 @@ pub fn tensors(policy: &Policy) -> Vec<NamedTensor> {
     let mut out = Vec::new();
     push_chain(&mut out, ACTOR_TRUNK, &policy.actor.trunk);
     push_dense(&mut out, ACTOR_MU, &policy.actor.mu);
-    push_dense(&mut out, ACTOR_LOG_STD, &policy.actor.log_std);
+    if let Some(log_std) = &policy.actor.log_std {
+        push_dense(&mut out, ACTOR_LOG_STD, log_std);
+    }
     for (k, critic) in policy.critics.iter().enumerate() {
         push_chain(&mut out, &critic_prefix(k), critic);
     }

@@ -377,3 +377,89 @@ fn a_file_is_checked_by_its_header_before_it_is_read() {
     std::fs::write(&good, &bytes[..real]).unwrap();
     assert_eq!(load(&good).unwrap().manifest.name, "small");
 }
+
+/// The small policy as an actor without a Gaussian head (format 2).
+fn without_log_std(kind: crate::manifest::ActorKind, mean_clip: Option<f32>) -> Policy {
+    let mut policy = small_policy();
+    policy.manifest.format_version = crate::manifest::FORMAT_VERSION_ACTOR_KINDS;
+    policy.manifest.actor.kind = kind;
+    policy.manifest.actor.mean_clip = mean_clip;
+    policy.actor.log_std = None;
+    policy.actor.mean_clip = mean_clip.unwrap_or(f32::INFINITY);
+    policy
+}
+
+#[test]
+fn actors_without_a_gaussian_head_act_tanh_of_the_clipped_mean_whatever_the_noise() {
+    use crate::manifest::ActorKind;
+    let obs = [0.4, -2.0, 1.5, 0.9];
+    for (kind, clip) in [
+        (ActorKind::Deterministic, None),
+        (ActorKind::GaussianSde, Some(0.05)),
+        (ActorKind::GaussianSde, None),
+    ] {
+        let policy = without_log_std(kind, clip);
+        let bytes = to_bytes(&policy).unwrap();
+        let loaded = from_bytes(&bytes, &path()).unwrap();
+        assert_eq!(loaded.manifest, policy.manifest);
+        assert!(loaded.actor.log_std.is_none() && !loaded.actor.samples());
+        let names = SafeTensors::deserialize(&bytes).unwrap().names().len();
+        assert_eq!(
+            names,
+            tensors(&small_policy()).len() - 2,
+            "no log_std tensors"
+        );
+        let mut latent_scratch = loaded.actor.trunk.scratch_for(1);
+        let latent = loaded
+            .actor
+            .trunk
+            .forward_rows(&obs, &mut latent_scratch)
+            .to_vec();
+        let mut mu = [0.0; 2];
+        loaded.actor.mu.forward_rows(&latent, &mut mu);
+        let limit = clip.unwrap_or(f32::INFINITY);
+        let expected = mu.map(|m| m.clamp(-limit, limit).tanh());
+        let mut evaluator = Evaluator::new(Arc::new(loaded));
+        for noise in [[0.0, 0.0], [2.5, -1.0]] {
+            let mut action = [0.0; 2];
+            evaluator.act(&obs, &noise, &mut action);
+            assert_eq!(action, expected, "{kind:?}");
+        }
+        if clip.is_some() {
+            assert!(expected.iter().all(|a| a.abs() < 0.05), "{expected:?}");
+        }
+    }
+}
+
+#[test]
+fn actor_kinds_need_format_2_and_a_clip_only_where_it_means_something() {
+    use crate::manifest::ActorKind;
+    let reason = |policy: Policy| {
+        let json = serde_json::to_string(&policy.manifest).unwrap();
+        let e = load_error(&rebuild(&tensors(&policy), Some(&json)));
+        format!("{}: {}", e.field, e.reason)
+    };
+    let mut old = without_log_std(ActorKind::Deterministic, None);
+    old.manifest.format_version = 1;
+    assert_eq!(
+        reason(old),
+        "manifest.actor.kind: needs format_version 2, the bundle says 1"
+    );
+    assert!(
+        reason(without_log_std(ActorKind::GaussianSde, Some(-1.0)))
+            .starts_with("manifest.actor.mean_clip: is -1")
+    );
+    assert!(
+        reason(without_log_std(ActorKind::Deterministic, Some(2.0)))
+            .contains("only for gaussian_sde actors")
+    );
+    let mut newer = small_policy();
+    newer.manifest.format_version = 3;
+    assert!(reason(newer).contains("this prac reads versions 1 to 2"));
+    // A Gaussian actor's manifest says nothing of kinds: version-1 bytes stay as they were.
+    let json = serde_json::to_string(&small_policy().manifest).unwrap();
+    assert!(
+        !json.contains("kind") && !json.contains("mean_clip"),
+        "{json}"
+    );
+}

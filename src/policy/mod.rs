@@ -11,14 +11,25 @@ use crate::plan::{MAX_CHUNK, Networks};
 pub const LOG_STD_MIN: f32 = -20.0;
 pub const LOG_STD_MAX: f32 = 2.0;
 
-/// Squashed-Gaussian actor: `latent = trunk(obs)`, `mu = W_mu latent`, `log_std = W_ls latent`,
-/// action `tanh(mu + exp(log_std) * noise)`.
+/// The actor: `latent = trunk(obs)`, `mu = W_mu latent`. A Gaussian actor also has
+/// `log_std = W_ls latent` and acts `tanh(mu + exp(log_std) * noise)`; the others (gSDE, TD3,
+/// DDPG; `ActorKind`) act `tanh(clip(mu))` whatever the noise.
 #[derive(Clone, Debug)]
 pub struct Actor {
     /// SB3's `latent_pi` (ends in an activation).
     pub trunk: Mlp,
     pub mu: Dense,
-    pub log_std: Dense,
+    /// The Gaussian's log-std head; None for actors without one.
+    pub log_std: Option<Dense>,
+    /// The clip of the mean before tanh (gSDE's `clip_mean`); infinite where there is none.
+    pub mean_clip: f32,
+}
+
+impl Actor {
+    /// Whether a sampled action differs from the deterministic one.
+    pub fn samples(&self) -> bool {
+        self.log_std.is_some()
+    }
 }
 
 /// Predicts `s' = s + denormalise(net(normalise(s), normalise(a)))`.
@@ -154,9 +165,16 @@ impl Networks for Evaluator {
         let ad = self.policy.act_dim();
         let latent = actor.trunk.forward_rows(obs, &mut self.actor);
         resize(&mut self.mu, n * ad);
-        resize(&mut self.log_std, n * ad);
         actor.mu.forward_rows(latent, &mut self.mu);
-        actor.log_std.forward_rows(latent, &mut self.log_std);
+        let Some(log_std_head) = &actor.log_std else {
+            let clip = actor.mean_clip;
+            for (a, mu) in actions[..n * ad].iter_mut().zip(&self.mu) {
+                *a = mu.clamp(-clip, clip).tanh();
+            }
+            return;
+        };
+        resize(&mut self.log_std, n * ad);
+        log_std_head.forward_rows(latent, &mut self.log_std);
         for i in 0..n * ad {
             let std = self.log_std[i].clamp(LOG_STD_MIN, LOG_STD_MAX).exp();
             actions[i] = (self.mu[i] + std * noise[i]).tanh();

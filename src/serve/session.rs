@@ -104,6 +104,14 @@ impl SessionSettings {
                 "fixed {n} is longer than max_horizon {max_horizon}; raise max_horizon or lower n"
             ));
         }
+        if options.sampled && !policy.actor.samples() {
+            return Err(format!(
+                "sampled actions need a distribution to sample, and bundle '{}' has a {} actor, \
+                 which acts deterministically; leave sampled off",
+                policy.manifest.name,
+                policy.manifest.actor.kind.as_str()
+            ));
+        }
         Ok(SessionSettings {
             replan: ReplanConfig {
                 epsilon: epsilon as f32,
@@ -959,5 +967,21 @@ mod tests {
             .unwrap_err();
             assert!(e.contains("not a finite f32"), "{coef}: {e}");
         }
+
+        // An actor without a distribution (TD3, DDPG, gSDE) cannot be sampled.
+        let sampled = proto::SessionOptions {
+            sampled: true,
+            ..Default::default()
+        };
+        assert!(resolve(sampled).is_ok());
+        let mut deterministic = (*policy).clone();
+        deterministic.manifest.actor.kind = crate::manifest::ActorKind::Deterministic;
+        deterministic.actor.log_std = None;
+        let e = SessionSettings::resolve(Some(&sampled), &deterministic, 256).unwrap_err();
+        assert!(
+            e.contains("has a deterministic actor") && e.contains("leave sampled off"),
+            "{e}"
+        );
+        assert!(SessionSettings::resolve(None, &deterministic, 256).is_ok());
     }
 }

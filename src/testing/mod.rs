@@ -5,8 +5,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use crate::manifest::{
-    CriticSpec, FORMAT_VERSION, Manifest, ModelSpec, NetSpec, Normalization, Provenance,
-    QAggregation, ValueScale,
+    ActorKind, ActorSpec, CriticSpec, FORMAT_VERSION, Manifest, ModelSpec, Normalization,
+    Provenance, QAggregation, ValueScale,
 };
 use crate::nn::{Activation, Dense, Mlp};
 use crate::policy::{Actor, DynamicsModel, Policy};
@@ -76,7 +76,12 @@ pub fn random_policy(manifest: Manifest, seed: u64) -> Policy {
     let log_std = chain(latent, &[], Some(act)).remove(0);
     Policy {
         content_hash: String::new(),
-        actor: Actor { trunk, mu, log_std },
+        actor: Actor {
+            trunk,
+            mu,
+            log_std: Some(log_std),
+            mean_clip: f32::INFINITY,
+        },
         critics,
         model,
         manifest,
@@ -115,9 +120,11 @@ pub fn test_manifest(
         action_low: vec![-1.0; act_dim],
         action_high: vec![1.0; act_dim],
         gamma: 0.98,
-        actor: NetSpec {
+        actor: ActorSpec {
             hidden: hidden.to_vec(),
             activation: Activation::Relu,
+            kind: ActorKind::Gaussian,
+            mean_clip: None,
         },
         critic: CriticSpec {
             n_critics: 2,

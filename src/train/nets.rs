@@ -189,15 +189,8 @@ impl ActorNet {
         Actor {
             trunk: self.trunk.to_mlp(obs_dim, true),
             mu: to_dense(&self.mu),
-            log_std: to_dense(&self.log_std),
-        }
-    }
-
-    pub fn from_actor(actor: &Actor, device: &Device) -> ActorNet {
-        ActorNet {
-            trunk: MlpNet::from_mlp(&actor.trunk, device),
-            mu: from_dense(&actor.mu, device),
-            log_std: from_dense(&actor.log_std, device),
+            log_std: Some(to_dense(&self.log_std)),
+            mean_clip: f32::INFINITY,
         }
     }
 }

@@ -21,7 +21,8 @@ use super::model::ModelTrainer;
 use super::options::{Progress, TrainOptions};
 use super::sac::{Batch, Sac, SacConfig, SacLosses};
 use crate::bundle::{
-    CriticSpec, FORMAT_VERSION, Manifest, ModelSpec, NetSpec, Provenance, QAggregation, ValueScale,
+    ActorKind, ActorSpec, CriticSpec, FORMAT_VERSION, Manifest, ModelSpec, Provenance,
+    QAggregation, ValueScale,
 };
 use crate::domains::{self, Env, EnvSpec, EpisodeTotals};
 use crate::nn::Activation;
@@ -66,9 +67,11 @@ pub fn manifest(
         action_low: spec.action_low.clone(),
         action_high: spec.action_high.clone(),
         gamma: config.gamma,
-        actor: NetSpec {
+        actor: ActorSpec {
             hidden: config.hidden.clone(),
             activation: Activation::Relu,
+            kind: ActorKind::Gaussian,
+            mean_clip: None,
         },
         critic: CriticSpec {
             n_critics: config.n_critics,

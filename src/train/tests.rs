@@ -62,7 +62,7 @@ fn squashed_gaussian_log_prob_matches_the_closed_form() {
             .forward_rows(&obs[k * od..(k + 1) * od], &mut scratch)
             .to_vec();
         let mu = forward_dense(&actor.mu, &latent);
-        let log_std = forward_dense(&actor.log_std, &latent);
+        let log_std = forward_dense(actor.log_std.as_ref().unwrap(), &latent);
         let mut expected = 0.0f64;
         for i in 0..ad {
             let ls = f64::from(log_std[i].clamp(-20.0, 2.0));

@@ -12,9 +12,14 @@ import numpy as np
 import pytest
 
 from conftest import Server, prac_bin
+import prac_client
 from prac_client import Client
 from prac_client.bundle import from_sb3_state_dict, random_model, random_sb3_state_dict, write_bundle
+from prac_client.export_sb3 import algorithm_of
 from prac_client.export_sb3 import main as export_main
+from prac_client.record import gymnasium_id
+from prac_client.value_scale import discounted_return, measure, read_bundle
+from prac_client.value_scale import main as value_scale_main
 from prac_client.export_sb3 import spaces_from_sb3_data
 
 
@@ -115,3 +120,114 @@ def test_an_exported_bundle_with_a_model_serves_sb3s_actions(tmp_path: pathlib.P
 def test_export_without_torch_says_what_to_install(tmp_path: pathlib.Path) -> None:
     with pytest.raises(SystemExit, match="needs torch"):
         export_main([str(tmp_path / "model.zip"), "--out", str(tmp_path / "p.safetensors")])
+
+
+def sde_and_td3_state_dicts(seed: int) -> dict[str, dict[str, np.ndarray]]:
+    """A SAC state dict renamed as SB3 names a clipped gSDE actor, and one as its TD3 actor."""
+    sac = random_sb3_state_dict(3, 1, [32, 32], seed=seed)
+    sde = {k: v for k, v in sac.items() if not k.startswith("actor.mu.") and not k.startswith("actor.log_std.")}
+    sde["actor.mu.0.weight"], sde["actor.mu.0.bias"] = 4.0 * sac["actor.mu.weight"], sac["actor.mu.bias"]
+    sde["actor.log_std"] = np.full((32, 1), -1.0, dtype=np.float32)
+    td3 = {k: v for k, v in sac.items() if k.startswith("critic")}
+    for i, prefix in enumerate(["actor.latent_pi.0", "actor.latent_pi.2", "actor.mu"]):
+        td3[f"actor.mu.{2 * i}.weight"], td3[f"actor.mu.{2 * i}.bias"] = sac[f"{prefix}.weight"], sac[f"{prefix}.bias"]
+    return {"sde": sde, "td3": td3, "sac": sac}
+
+
+def test_gsde_and_td3_actors_export_and_serve_tanh_of_the_clipped_mean(tmp_path: pathlib.Path) -> None:
+    states = sde_and_td3_state_dicts(seed=9)
+    sac = states["sac"]
+    for name, kind, clip in [("sde", "gaussian_sde", 2.0), ("td3", "deterministic", None)]:
+        tensors, manifest = from_sb3_state_dict(
+            states[name],
+            name=name,
+            domain="pendulum",
+            action_low=[-2.0],
+            action_high=[2.0],
+            gamma=0.98,
+            model=random_model(3, 1, [16], seed=2),
+            actor_kind=kind,
+            mean_clip=clip,
+        )
+        assert "actor.log_std.weight" not in tensors and not any(k.startswith("critic_target") for k in tensors)
+        assert manifest["format_version"] == 2
+        assert manifest["actor"]["kind"] == kind and manifest["actor"].get("mean_clip") == clip
+        write_bundle(tmp_path / f"{name}.safetensors", tensors, manifest)
+    server = Server(tmp_path)
+    try:
+        with Client(server.address, timeout=10) as client:
+            rng = np.random.default_rng(3)
+            observations = rng.uniform(-1, 1, (8, 3)).astype(np.float32)
+            for name, scale, clip in [("sde", 4.0, 2.0), ("td3", 1.0, np.inf)]:
+                with client.session(name, max_horizon=1) as session:
+                    for obs in observations:
+                        x = obs.astype(np.float64)
+                        for layer in ("actor.latent_pi.0", "actor.latent_pi.2"):
+                            x = np.maximum(sac[f"{layer}.weight"] @ x + sac[f"{layer}.bias"], 0.0)
+                        mu = scale * sac["actor.mu.weight"] @ x + sac["actor.mu.bias"]
+                        expected = 2.0 * np.tanh(np.clip(mu, -clip, clip))
+                        result = session.reset(obs)
+                        assert result is not None
+                        np.testing.assert_allclose(result.action, expected, rtol=1e-4, atol=1e-5)
+                # No distribution to sample from: a sampled session is refused with the reason.
+                with pytest.raises(prac_client.InvalidOptions, match="acts deterministically"):
+                    client.session(name, sampled=True)
+    finally:
+        server.stop()
+
+
+def test_the_algorithm_comes_from_the_policy_class_and_others_are_refused() -> None:
+    states = sde_and_td3_state_dicts(seed=1)
+    module = lambda m: {"policy_class": {":type:": "<class 'abc.ABCMeta'>", "__module__": m}}  # noqa: E731
+    assert algorithm_of(module("stable_baselines3.sac.policies"), states["sac"]) == ("SAC", "gaussian", None)
+    sde_data = {**module("stable_baselines3.sac.policies"), "policy_kwargs": {"use_sde": True, "clip_mean": 1.5}}
+    assert algorithm_of(sde_data, states["sde"]) == ("SAC (gSDE)", "gaussian_sde", 1.5)
+    td3 = module("stable_baselines3.td3.policies")
+    assert algorithm_of(td3, states["td3"]) == ("TD3", "deterministic", None)
+    ddpg = {**td3, "policy_delay": 1, "target_noise_clip": 0.0}
+    assert algorithm_of(ddpg, states["td3"]) == ("DDPG", "deterministic", None)
+    # Old zips without the module: the weights' names tell SAC from TD3.
+    assert algorithm_of({}, states["td3"])[1] == "deterministic"
+    with pytest.raises(ValueError, match=r"stable_baselines3.ppo.policies: prac serves off-policy actor-critics"):
+        algorithm_of(module("stable_baselines3.ppo.policies"), {"action_net.weight": np.zeros(1)})
+
+
+def test_gym_mujoco_ids_play_as_gymnasium_v4(capsys: pytest.CaptureFixture[str]) -> None:
+    assert gymnasium_id("Hopper-v3") == "Hopper-v4"
+    assert "gymnasium's port" in capsys.readouterr().err
+    assert gymnasium_id("Pendulum-v1") == "Pendulum-v1"
+    assert gymnasium_id("Walker2d-v5") == "Walker2d-v5"
+
+
+def test_a_value_scale_is_added_or_replaced_and_nonsense_refused(tmp_path: pathlib.Path) -> None:
+    state = random_sb3_state_dict(3, 1, [16], seed=4)
+    tensors, manifest = from_sb3_state_dict(
+        state, name="scaled", domain="pendulum", action_low=[-2.0], action_high=[2.0], gamma=0.98
+    )
+    path = tmp_path / "scaled.safetensors"
+    write_bundle(path, tensors, manifest)
+    assert value_scale_main([str(path), "--v-pi", "-150.5", "--v-rand", "-600"]) == 0
+    assert value_scale_main([str(path), "--v-pi", "-140", "--v-rand", "-610.25"]) == 0
+    out = subprocess.run([prac_bin(), "inspect", str(path), "--json"], capture_output=True, text=True, check=True)
+    assert json.loads(out.stdout)["value_scale"] == {"v_pi": -140.0, "v_rand": -610.25}
+    after, _ = read_bundle(path)
+    assert sorted(after) == sorted(tensors)
+    assert all(np.array_equal(after[k], tensors[k]) for k in tensors)
+    with pytest.raises(SystemExit, match="is not above V_rand"):
+        value_scale_main([str(path), "--v-pi", "-700", "--v-rand", "-600"])
+    with pytest.raises(SystemExit):
+        value_scale_main([str(path), "--v-pi", "1"])
+
+
+def test_the_discounted_values_are_measured_on_the_same_seeds() -> None:
+    gymnasium = pytest.importorskip("gymnasium")
+    env = gymnasium.make("Pendulum-v1")
+    # Pushing with the angular velocity swings it; both values are deterministic per seed.
+    act = lambda obs: np.clip([2.0 * np.sign(obs[2])], -2.0, 2.0)  # noqa: E731
+    first = measure(env, act, 0.98, 3, seed=10)
+    assert first == measure(env, act, 0.98, 3, seed=10)
+    assert first != measure(env, act, 0.98, 3, seed=11)
+    expected_pi = np.mean([discounted_return(env, act, 0.98, 10 + k) for k in range(3)])
+    assert first[0] == pytest.approx(expected_pi)
+    with pytest.raises(ValueError, match="episodes is 0"):
+        measure(env, act, 0.98, 0, seed=0)

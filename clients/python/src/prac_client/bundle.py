@@ -13,6 +13,10 @@ import numpy as np
 import numpy.typing as npt
 
 FORMAT_VERSION = 1
+# Version 2 adds the actor's kind (gaussian_sde, deterministic) and mean_clip; a Gaussian actor's
+# bundle stays version 1, so any prac reads it.
+FORMAT_VERSION_ACTOR_KINDS = 2
+ACTOR_KINDS = ("gaussian", "gaussian_sde", "deterministic")
 Array = npt.NDArray[np.float32]
 
 
@@ -32,6 +36,37 @@ def _linear_chain(state: Mapping[str, npt.ArrayLike], prefix: str) -> list[tuple
     return layers
 
 
+def _actor_tensors(
+    state: Mapping[str, npt.ArrayLike], kind: str, mean_clip: float | None
+) -> tuple[list[tuple[str, Array, Array]], dict[str, Array]]:
+    """The actor as a bundle holds it: trunk layers (named actor.latent_pi.*) and heads.
+
+    SAC: actor.latent_pi.* then the linear heads actor.mu and actor.log_std. SAC with gSDE: the
+    mean head is actor.mu.0 when SB3 clipped it (Sequential(Linear, Hardtanh)), actor.mu
+    otherwise; actor.log_std is the gSDE noise parameter, not a head, and is left out. TD3 and
+    DDPG: actor.mu is Sequential(Linear, act, ..., Linear, Tanh): all but its last layer are
+    the trunk."""
+    heads: dict[str, Array] = {}
+    if kind == "deterministic":
+        chain = _linear_chain(state, "actor.mu")
+        if not chain:
+            raise ValueError("no actor.mu.0.weight: not an SB3 TD3/DDPG actor")
+        trunk = [(f"actor.latent_pi.{2 * i}", w, b) for i, (_, w, b) in enumerate(chain[:-1])]
+        heads["actor.mu.weight"], heads["actor.mu.bias"] = chain[-1][1], chain[-1][2]
+        return trunk, heads
+    trunk = _linear_chain(state, "actor.latent_pi")
+    if kind == "gaussian" and "actor.log_std.weight" not in state:
+        raise ValueError("no actor.log_std.weight: not a plain SAC actor (a gSDE one has actor.log_std alone)")
+    mu = "actor.mu.0" if kind == "gaussian_sde" and mean_clip is not None else "actor.mu"
+    if f"{mu}.weight" not in state:
+        raise ValueError(f"no {mu}.weight: not an SB3 SAC actor of kind {kind}")
+    for part in ("weight", "bias"):
+        heads[f"actor.mu.{part}"] = np.asarray(state[f"{mu}.{part}"], dtype=np.float32)
+        if kind == "gaussian":
+            heads[f"actor.log_std.{part}"] = np.asarray(state[f"actor.log_std.{part}"], dtype=np.float32)
+    return trunk, heads
+
+
 def from_sb3_state_dict(
     state: Mapping[str, npt.ArrayLike],
     *,
@@ -45,21 +80,26 @@ def from_sb3_state_dict(
     value_scale: tuple[float, float] | None = None,
     provenance: Mapping[str, Any] | None = None,
     model: Mapping[str, Any] | None = None,
+    actor_kind: str = "gaussian",
+    mean_clip: float | None = None,
 ) -> tuple[dict[str, Array], dict[str, Any]]:
-    """Maps an SB3 SAC policy state dict (actor.latent_pi.*, actor.mu.*, actor.log_std.*,
-    critic.qf{k}.*; critic_target.* is dropped) to bundle tensors and manifest. Layer sizes come
-    from the shapes. `model`, if given, holds the dynamics model: {"tensors": {model.net.*},
-    "hidden", "activation", "normalization"}."""
-    trunk = _linear_chain(state, "actor.latent_pi")
-    mu_w = np.asarray(state["actor.mu.weight"], dtype=np.float32)
+    """Maps an SB3 SAC, TD3 or DDPG policy state dict (actor.*, critic.qf{k}.*; the target
+    networks are dropped) to bundle tensors and manifest. `actor_kind` is "gaussian" (SAC),
+    "gaussian_sde" (SAC with gSDE; `mean_clip` its clip_mean, None where it did not clip) or
+    "deterministic" (TD3, DDPG). Layer sizes come from the shapes. `model`, if given, holds the
+    dynamics model: {"tensors": {model.net.*}, "hidden", "activation", "normalization"}."""
+    if actor_kind not in ACTOR_KINDS:
+        raise ValueError(f"actor kind {actor_kind!r}; expected one of {', '.join(ACTOR_KINDS)}")
+    if mean_clip is not None and actor_kind != "gaussian_sde":
+        raise ValueError(f"mean_clip is for gaussian_sde actors, not {actor_kind}")
+    trunk, heads = _actor_tensors(state, actor_kind, mean_clip)
+    mu_w = heads["actor.mu.weight"]
     act_dim = mu_w.shape[0]
     obs_dim = trunk[0][1].shape[1] if trunk else mu_w.shape[1]
     tensors: dict[str, Array] = {}
     for layer, w, b in trunk:
         tensors[f"{layer}.weight"], tensors[f"{layer}.bias"] = w, b
-    for head in ("actor.mu", "actor.log_std"):
-        for part in ("weight", "bias"):
-            tensors[f"{head}.{part}"] = np.asarray(state[f"{head}.{part}"], dtype=np.float32)
+    tensors.update(heads)
     n_critics = 0
     critic_hidden: list[int] | None = None
     while f"critic.qf{n_critics}.0.weight" in state:
@@ -74,11 +114,16 @@ def from_sb3_state_dict(
             tensors[f"{layer}.weight"], tensors[f"{layer}.bias"] = w, b
         n_critics += 1
     if n_critics == 0:
-        raise ValueError("no critic.qf0.* tensors: not an SB3 SAC/TD3 policy")
+        raise ValueError("no critic.qf0.* tensors: not an SB3 SAC, TD3 or DDPG policy")
     low = np.broadcast_to(np.asarray(action_low, dtype=np.float32), (act_dim,))
     high = np.broadcast_to(np.asarray(action_high, dtype=np.float32), (act_dim,))
+    actor: dict[str, Any] = {"hidden": [int(w.shape[0]) for _, w, _ in trunk], "activation": activation}
+    if actor_kind != "gaussian":
+        actor["kind"] = actor_kind
+        if mean_clip is not None:
+            actor["mean_clip"] = float(mean_clip)
     manifest: dict[str, Any] = {
-        "format_version": FORMAT_VERSION,
+        "format_version": FORMAT_VERSION if actor_kind == "gaussian" else FORMAT_VERSION_ACTOR_KINDS,
         "name": name,
         "domain": domain,
         "obs_dim": int(obs_dim),
@@ -86,7 +131,7 @@ def from_sb3_state_dict(
         "action_low": [float(v) for v in low],
         "action_high": [float(v) for v in high],
         "gamma": float(gamma),
-        "actor": {"hidden": [int(w.shape[0]) for _, w, _ in trunk], "activation": activation},
+        "actor": actor,
         "critic": {"n_critics": n_critics, "hidden": critic_hidden, "activation": activation},
         "model": None,
         "q_aggregation": q_aggregation,

@@ -1,11 +1,17 @@
-"""Makes a prac bundle from a Stable-Baselines3 SAC checkpoint (needs torch).
+"""Makes a prac bundle from a Stable-Baselines3 SAC, TD3 or DDPG checkpoint (needs torch).
 
-    python -m prac_client.export_sb3 MODEL.zip --out P.safetensors [--name P] [--domain D]
+    python -m prac_client.export_sb3 MODEL[.zip] --out P.safetensors [--name P] [--domain D]
+        [--env ENV_ID [--episodes N] | --value-scale V_PI V_RAND]
 
 The bundle holds the actor and critics and a manifest from the checkpoint's spaces and gamma; it
 has no dynamics model (record transitions with `python -m prac_client.record` and add one with
 `prac fit-model`). Nothing is unpickled but the weights (torch.load(weights_only=True)): the
-spaces are read from the readable fields SB3 writes next to its pickles.
+spaces and the algorithm are read from the readable fields SB3 writes next to its pickles, so
+zips from the rl-zoo (saved with gym, not gymnasium) export as they are.
+
+Actor kinds: SAC's squashed Gaussian; SAC with gSDE (use_sde), whose deterministic action is
+tanh of the mean clipped to +-clip_mean and which has no sampling distribution in the bundle;
+TD3 and DDPG, deterministic. Any other algorithm is refused.
 """
 
 from __future__ import annotations
@@ -63,28 +69,92 @@ def spaces_from_sb3_data(data: Mapping[str, Any]) -> dict[str, Any]:
     }
 
 
+def zip_path(path: str | pathlib.Path) -> pathlib.Path:
+    """The checkpoint's file: PATH, or PATH.zip as SB3's load accepts it."""
+    path = pathlib.Path(path)
+    if not path.exists() and path.suffix != ".zip" and path.with_name(path.name + ".zip").exists():
+        return path.with_name(path.name + ".zip")
+    return path
+
+
+def algorithm_of(data: Mapping[str, Any], state: Mapping[str, Any]) -> tuple[str, str, float | None]:
+    """(algorithm, actor kind, mean clip) of an SB3 checkpoint, from its policy class's module
+    and the weights; anything but SAC, TD3 and DDPG is a ValueError with one line."""
+    policy_class = data.get("policy_class")
+    module = str(policy_class.get("__module__", "")) if isinstance(policy_class, dict) else ""
+    family = module.split(".")[1] if module.startswith("stable_baselines3.") else ""
+    if not family:
+        family = "sac" if any(k.startswith("actor.latent_pi.") for k in state) else "td3" if "actor.mu.0.weight" in state else ""
+    if family == "sac":
+        if "actor.log_std" not in state:
+            return "SAC", "gaussian", None
+        kwargs = data.get("policy_kwargs") or {}
+        clip = float(kwargs.get("clip_mean", 2.0)) if isinstance(kwargs, dict) else 2.0
+        clipped = "actor.mu.0.weight" in state
+        return "SAC (gSDE)", "gaussian_sde", (clip if clipped else None)
+    if family == "td3":
+        # SB3's DDPG is TD3 with one update per step and no target smoothing noise clip.
+        ddpg = data.get("policy_delay") == 1 and data.get("target_noise_clip") == 0.0
+        return ("DDPG" if ddpg else "TD3"), "deterministic", None
+    what = module or "an unknown policy"
+    raise ValueError(
+        f"the checkpoint holds {what}: prac serves off-policy actor-critics with Q critics "
+        "(SB3's SAC, TD3 and DDPG)"
+    )
+
+
 def load_sb3_zip(path: str | pathlib.Path) -> tuple[dict[str, npt.NDArray[np.float32]], dict[str, Any]]:
-    """The policy state dict (numpy) and the space facts of an SB3 checkpoint."""
+    """The policy state dict (numpy) and the facts (spaces, gamma, algorithm, actor kind) of an
+    SB3 checkpoint."""
     try:
         import torch
     except ImportError:
         raise SystemExit("export_sb3 needs torch: pip install 'prac-client[sb3]'") from None
-    with zipfile.ZipFile(path) as archive:
-        data = json.loads(archive.read("data"))
-        weights = torch.load(io.BytesIO(archive.read("policy.pth")), map_location="cpu", weights_only=True)
+    try:
+        with zipfile.ZipFile(zip_path(path)) as archive:
+            data = json.loads(archive.read("data"))
+            weights = torch.load(io.BytesIO(archive.read("policy.pth")), map_location="cpu", weights_only=True)
+    except (OSError, zipfile.BadZipFile, KeyError, ValueError) as e:
+        raise SystemExit(f"{path}: not a readable SB3 checkpoint ({e})") from None
     state = {k: v.detach().cpu().numpy().astype(np.float32) for k, v in weights.items()}
-    return state, spaces_from_sb3_data(data)
+    facts = spaces_from_sb3_data(data)
+    try:
+        facts["algorithm"], facts["actor_kind"], facts["mean_clip"] = algorithm_of(data, state)
+    except ValueError as e:
+        raise SystemExit(f"{path}: {e}") from None
+    return state, facts
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m prac_client.export_sb3", description=__doc__.split("\n")[0])
-    parser.add_argument("model", help="SB3 checkpoint (.zip)")
+    parser.add_argument("model", help="SB3 SAC, TD3 or DDPG checkpoint (.zip; the suffix may be left out)")
     parser.add_argument("--out", required=True, help="bundle to write (NAME.safetensors)")
     parser.add_argument("--name", help="policy name [default: the output file's stem]")
     parser.add_argument("--domain", default="unknown", help="domain the policy controls")
-    parser.add_argument("--value-scale", nargs=2, type=float, metavar=("V_PI", "V_RAND"))
+    scale = parser.add_mutually_exclusive_group()
+    scale.add_argument("--value-scale", nargs=2, type=float, metavar=("V_PI", "V_RAND"))
+    scale.add_argument(
+        "--env", help="measure the value scale on this gymnasium env (needs stable-baselines3), as prac evaluate does"
+    )
+    parser.add_argument("--episodes", type=int, default=50, help="episodes per value with --env [default: 50]")
     args = parser.parse_args(argv)
     state, facts = load_sb3_zip(args.model)
+    if args.env:
+        import gymnasium
+
+        from prac_client.record import gymnasium_id, load_sb3
+        from prac_client.value_scale import measure
+
+        env = gymnasium.make(gymnasium_id(args.env))
+        model = load_sb3(args.model, env)
+        v_pi, v_rand = measure(
+            env, lambda obs: model.predict(obs, deterministic=True)[0], facts["gamma"], args.episodes, 0
+        )
+        print(f"measured on {args.env} over {args.episodes} episodes: V_pi = {v_pi:.4f}, V_rand = {v_rand:.4f}")
+        if v_pi > v_rand:
+            args.value_scale = (v_pi, v_rand)
+        else:
+            print("warning: V_pi is not above V_rand, so the bundle gets no value scale", file=sys.stderr)
     out = pathlib.Path(args.out)
     tensors, manifest = from_sb3_state_dict(
         state,
@@ -95,12 +165,21 @@ def main(argv: list[str] | None = None) -> int:
         gamma=facts["gamma"],
         activation=facts["activation"],
         value_scale=tuple(args.value_scale) if args.value_scale else None,
-        provenance={"steps": facts["steps"], "seed": facts["seed"]},
+        provenance={
+            "trainer": f"stable-baselines3 {facts['algorithm']} (exported by prac_client)",
+            "steps": facts["steps"],
+            "seed": facts["seed"],
+        },
+        actor_kind=facts["actor_kind"],
+        mean_clip=facts["mean_clip"],
     )
     if manifest["obs_dim"] != facts["obs_dim"]:
         raise SystemExit(f"actor takes {manifest['obs_dim']} inputs, observation space has {facts['obs_dim']}")
     write_bundle(out, tensors, manifest)
-    print(f"wrote {out}: {manifest['obs_dim']} obs, {manifest['act_dim']} actions, no dynamics model")
+    print(
+        f"wrote {out}: {facts['algorithm']}, {manifest['obs_dim']} obs, {manifest['act_dim']} actions, "
+        f"{facts['actor_kind']} actor, no dynamics model"
+    )
     return 0
 
 

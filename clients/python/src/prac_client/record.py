@@ -1,7 +1,12 @@
 """Records transitions (obs, action, next_obs) from a gymnasium environment, for `prac fit-model`.
 
     python -m prac_client.record --env Pendulum-v1 --episodes 20 --out transitions.safetensors \\
-        (--server 127.0.0.1:50051 --policy pendulum [--epsilon-coef C] | --sb3 MODEL.zip)
+        (--server 127.0.0.1:50051 --policy pendulum [--epsilon-coef C] | --sb3 MODEL[.zip])
+
+--sb3 plays an SB3 SAC, TD3 or DDPG checkpoint, loaded as rl-zoo's enjoy.py loads one (its
+pickled schedules replaced and its spaces taken from the environment, so zips saved with gym
+load under gymnasium). gym's MuJoCo ids (Hopper-v3, ...) are played as gymnasium's v4 ports,
+with a warning.
 
 Writes float32 arrays obs [N, obs_dim], action [N, act_dim] (as executed, in the environment's
 units), next_obs [N, obs_dim], reward [N] and done [N] (1 where the episode terminated).
@@ -11,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from typing import Any, Callable
 
@@ -41,6 +47,55 @@ def record(env: Any, act: Policy, episodes: int, *, seed: int = 0) -> dict[str, 
     return {k: np.asarray(v, dtype=np.float32) for k, v in columns.items()}
 
 
+_GYM_MUJOCO = re.compile(
+    r"(Ant|HalfCheetah|Hopper|Humanoid|HumanoidStandup|InvertedDoublePendulum|InvertedPendulum|"
+    r"Pusher|Reacher|Swimmer|Walker2d)-v[23]"
+)
+
+
+def gymnasium_id(env_id: str) -> str:
+    """gymnasium's id for `env_id`: gym's MuJoCo v2/v3 ids (the rl-zoo's) map to v4, with a
+    warning on stderr; any other id is unchanged."""
+    match = _GYM_MUJOCO.fullmatch(env_id)
+    if match is None:
+        return env_id
+    ported = f"{match.group(1)}-v4"
+    print(
+        f"warning: {env_id} is gym's MuJoCo task, which gymnasium no longer has; playing {ported}, "
+        "gymnasium's port of it (same observation and action spaces)",
+        file=sys.stderr,
+    )
+    return ported
+
+
+def load_sb3(path: str, env: Any) -> Any:
+    """An SB3 SAC, TD3 or DDPG model from its checkpoint, loaded as rl-zoo's enjoy.py does."""
+    try:
+        from stable_baselines3 import DDPG, SAC, TD3
+    except ImportError:
+        raise SystemExit("--sb3 needs stable-baselines3: pip install 'prac-client[sb3]'") from None
+    import zipfile
+
+    from prac_client.export_sb3 import algorithm_of, zip_path
+
+    checkpoint = zip_path(path)
+    with zipfile.ZipFile(checkpoint) as archive:
+        data = json.loads(archive.read("data"))
+    try:
+        algorithm = algorithm_of(data, {})[0]
+    except ValueError as e:
+        raise SystemExit(f"{path}: {e}") from None
+    cls = {"TD3": TD3, "DDPG": DDPG}.get(algorithm, SAC)
+    custom_objects = {
+        "learning_rate": 0.0,
+        "lr_schedule": lambda _: 0.0,
+        "exploration_schedule": lambda _: 0.0,
+        "observation_space": env.observation_space,
+        "action_space": env.action_space,
+    }
+    return cls.load(checkpoint, device="cpu", custom_objects=custom_objects)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m prac_client.record", description=__doc__.split("\n")[0])
     parser.add_argument("--env", required=True, help="gymnasium environment id, e.g. Pendulum-v1")
@@ -49,23 +104,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", required=True)
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--server", help="a prac server address (with --policy)")
-    source.add_argument("--sb3", help="an SB3 checkpoint (.zip); needs stable-baselines3")
+    source.add_argument("--sb3", help="an SB3 SAC, TD3 or DDPG checkpoint (.zip); needs stable-baselines3")
     parser.add_argument("--policy", help="the served policy's name")
-    parser.add_argument("--epsilon-coef", type=float, default=0.0)
+    tolerance = parser.add_mutually_exclusive_group()
+    tolerance.add_argument("--epsilon", type=float, help="absolute tolerance [default: the server's, 0]")
+    tolerance.add_argument("--epsilon-coef", type=float, help="tolerance as a coefficient (needs a value scale)")
     args = parser.parse_args(argv)
 
     import gymnasium
 
     from safetensors.numpy import save_file
 
-    env = gymnasium.make(args.env)
+    env = gymnasium.make(gymnasium_id(args.env))
     if args.server:
         if not args.policy:
             parser.error("--server needs --policy")
         from prac_client import Client
 
         client = Client(args.server)
-        session = client.session(args.policy, epsilon_coef=args.epsilon_coef)
+        session = client.session(args.policy, epsilon=args.epsilon, epsilon_coef=args.epsilon_coef)
 
         def act(obs: npt.NDArray[np.float32], first: bool) -> npt.NDArray[np.float32]:
             return session.step(obs, new_episode=first).action
@@ -75,11 +132,7 @@ def main(argv: list[str] | None = None) -> int:
         client.close()
         source_name = f"prac:{args.server}/{args.policy}"
     else:
-        try:
-            from stable_baselines3 import SAC
-        except ImportError:
-            raise SystemExit("--sb3 needs stable-baselines3: pip install 'prac-client[sb3]'") from None
-        model = SAC.load(args.sb3, device="cpu")
+        model = load_sb3(args.sb3, env)
 
         def act_sb3(obs: npt.NDArray[np.float32], first: bool) -> npt.NDArray[np.float32]:
             action, _ = model.predict(obs, deterministic=True)
