@@ -9,7 +9,8 @@ use crate::nn::Activation;
 /// The version a bundle is written with when it uses nothing newer (every bundle `prac train`
 /// writes): old servers keep reading them.
 pub const FORMAT_VERSION: u32 = 1;
-/// Version 2 adds `actor.kind` and `actor.mean_clip` (actors without a Gaussian head).
+/// Version 2 adds `actor.kind` and `actor.mean_clip` (actors without a Gaussian head) and
+/// `obs_normalization`.
 pub const FORMAT_VERSION_ACTOR_KINDS: u32 = 2;
 /// The newest version this prac reads.
 pub const NEWEST_FORMAT_VERSION: u32 = FORMAT_VERSION_ACTOR_KINDS;
@@ -39,6 +40,9 @@ pub struct Manifest {
     /// Discounted start-state values, for eps coefficients; absent means absolute eps only.
     #[serde(default)]
     pub value_scale: Option<ValueScale>,
+    /// The observation normalisation the actor and critics were trained behind (format 2).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub obs_normalization: Option<ObsNormalization>,
     pub provenance: Provenance,
 }
 
@@ -129,6 +133,27 @@ impl Normalization {
     }
 }
 
+/// SB3's VecNormalize of observations: the actor and critics see
+/// `clip((s - mean) / sqrt(var + epsilon), -clip_obs, clip_obs)`. Clients, plans and the dynamics
+/// model speak raw observations; the server applies it in front of the actor and critics only.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ObsNormalization {
+    pub mean: Vec<f32>,
+    pub var: Vec<f32>,
+    pub clip_obs: f32,
+    pub epsilon: f32,
+}
+
+impl ObsNormalization {
+    /// `1 / sqrt(var + epsilon)` per feature.
+    pub fn inverse_std(&self) -> Vec<f32> {
+        self.var
+            .iter()
+            .map(|&v| (1.0 / (f64::from(v) + f64::from(self.epsilon)).sqrt()) as f32)
+            .collect()
+    }
+}
+
 /// How the critics are combined into one Q.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -178,6 +203,33 @@ impl Manifest {
                     self.format_version
                 ),
             );
+        }
+        if self.format_version < FORMAT_VERSION_ACTOR_KINDS && self.obs_normalization.is_some() {
+            return fail(
+                "obs_normalization",
+                format!(
+                    "needs format_version {FORMAT_VERSION_ACTOR_KINDS}, the bundle says {}",
+                    self.format_version
+                ),
+            );
+        }
+        if let Some(n) = &self.obs_normalization {
+            check_vector("obs_normalization.mean", &n.mean, self.obs_dim)?;
+            check_vector("obs_normalization.var", &n.var, self.obs_dim)?;
+            if let Some(i) = n.var.iter().position(|&v| v < 0.0) {
+                return fail(
+                    &format!("obs_normalization.var[{i}]"),
+                    format!("is {}, a variance must be >= 0", n.var[i]),
+                );
+            }
+            for (field, value) in [("clip_obs", n.clip_obs), ("epsilon", n.epsilon)] {
+                if !(value.is_finite() && value > 0.0) {
+                    return fail(
+                        &format!("obs_normalization.{field}"),
+                        format!("is {value}, expected a finite value > 0"),
+                    );
+                }
+            }
         }
         if self.format_version < FORMAT_VERSION_ACTOR_KINDS
             && (!self.actor.kind.is_gaussian() || self.actor.mean_clip.is_some())

@@ -47,8 +47,23 @@ static GLOBAL: Counting = Counting;
 
 #[test]
 fn steps_after_the_first_do_not_allocate() {
-    let policy = Arc::new(prac::testing::random_policy(hopper_sized_manifest(), 3));
-    for (epsilon, sampled) in [(0.0, false), (0.05, true), (1e9, false)] {
+    let plain = hopper_sized_manifest();
+    // A bundle exported from SB3 with VecNormalize normalises observations on the per-step path.
+    let mut normalising = hopper_sized_manifest();
+    normalising.format_version = prac::manifest::FORMAT_VERSION_ACTOR_KINDS;
+    normalising.obs_normalization = Some(prac::manifest::ObsNormalization {
+        mean: vec![0.1; 15],
+        var: vec![2.0; 15],
+        clip_obs: 10.0,
+        epsilon: 1e-8,
+    });
+    for (manifest, epsilon, sampled) in [
+        (&plain, 0.0, false),
+        (&plain, 0.05, true),
+        (&plain, 1e9, false),
+        (&normalising, 0.05, false),
+    ] {
+        let policy = Arc::new(prac::testing::random_policy(manifest.clone(), 3));
         let settings = SessionSettings {
             replan: ReplanConfig {
                 epsilon,
@@ -81,7 +96,8 @@ fn steps_after_the_first_do_not_allocate() {
         assert_eq!(
             ALLOCATIONS.swap(0, Ordering::SeqCst),
             0,
-            "eps {epsilon} sampled {sampled}"
+            "eps {epsilon} sampled {sampled} normalising {}",
+            manifest.obs_normalization.is_some()
         );
     }
 }

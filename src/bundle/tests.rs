@@ -463,3 +463,107 @@ fn actor_kinds_need_format_2_and_a_clip_only_where_it_means_something() {
         "{json}"
     );
 }
+
+fn normalized(policy: &Policy, n: crate::manifest::ObsNormalization) -> Policy {
+    let mut policy = policy.clone();
+    policy.manifest.format_version = crate::manifest::FORMAT_VERSION_ACTOR_KINDS;
+    policy.manifest.obs_normalization = Some(n);
+    policy
+}
+
+fn vec_normalize() -> crate::manifest::ObsNormalization {
+    crate::manifest::ObsNormalization {
+        mean: vec![0.5, -1.0, 0.0, 2.0],
+        var: vec![4.0, 0.25, 0.0, 1.0],
+        clip_obs: 3.0,
+        epsilon: 1e-8,
+    }
+}
+
+#[test]
+fn a_normalising_bundle_feeds_its_actor_and_critics_normalised_observations_and_its_model_raw_ones()
+{
+    let plain = small_policy();
+    let policy = normalized(&plain, vec_normalize());
+    let loaded = from_bytes(&to_bytes(&policy).unwrap(), &path()).unwrap();
+    assert_eq!(loaded.manifest, policy.manifest);
+    let raw = [2.5, -1.25, 0.001, 2.0];
+    // (s - mean) / sqrt(var + 1e-8), clipped to +-3: the third feature (var 0) hits the clip.
+    let seen = [1.0, -0.5, 3.0, 0.0];
+    let (mut served, mut reference) = (
+        Evaluator::new(Arc::new(loaded)),
+        Evaluator::new(Arc::new(plain)),
+    );
+    let noise = [0.4, -0.8];
+    let (mut a, mut b) = ([0.0; 2], [0.0; 2]);
+    served.act(&raw, &noise, &mut a);
+    reference.act(&seen, &noise, &mut b);
+    assert_eq!(a, b);
+    let other = [0.2, -0.6];
+    let (mut qa, mut qb, mut ra, mut rb) = ([0.0], [0.0], [0.0], [0.0]);
+    served.q_pair(&raw, &a, &other, &mut qa, &mut qb);
+    reference.q_pair(&seen, &a, &other, &mut ra, &mut rb);
+    assert_eq!((qa, qb), (ra, rb));
+    let (mut next_a, mut next_b) = ([0.0; 4], [0.0; 4]);
+    served.predict_next(&raw, &a, &mut next_a);
+    reference.predict_next(&raw, &a, &mut next_b);
+    assert_eq!(next_a, next_b, "the model speaks raw observations");
+    // Batched rows normalise row by row.
+    let rows: Vec<f32> = raw.iter().chain(&seen).copied().collect();
+    let mut both = [0.0; 4];
+    served.act(&rows, &[noise, noise].concat(), &mut both);
+    assert_eq!(both[..2], a);
+    let mut c = [0.0; 2];
+    served.act(&seen, &noise, &mut c);
+    assert_eq!(both[2..], c);
+}
+
+#[test]
+fn a_bad_obs_normalization_is_named() {
+    let reason = |policy: Policy| {
+        let json = serde_json::to_string(&policy.manifest).unwrap();
+        let e = load_error(&rebuild(&tensors(&policy), Some(&json)));
+        format!("{}: {}", e.field, e.reason)
+    };
+    let plain = small_policy();
+    let mut old = normalized(&plain, vec_normalize());
+    old.manifest.format_version = 1;
+    assert_eq!(
+        reason(old),
+        "manifest.obs_normalization: needs format_version 2, the bundle says 1"
+    );
+    let mut short = vec_normalize();
+    short.mean.pop();
+    assert!(reason(normalized(&plain, short)).starts_with("manifest.obs_normalization.mean: "));
+    let mut negative = vec_normalize();
+    negative.var[1] = -1.0;
+    assert_eq!(
+        reason(normalized(&plain, negative)),
+        "manifest.obs_normalization.var[1]: is -1, a variance must be >= 0"
+    );
+    // JSON has no infinities: 1e39 is one once read as f32.
+    let mut huge = normalized(&plain, vec_normalize());
+    huge.manifest.obs_normalization.as_mut().unwrap().mean[0] = 12345.0;
+    let json = serde_json::to_string(&huge.manifest)
+        .unwrap()
+        .replace("12345.0", "1e39");
+    let e = load_error(&rebuild(&tensors(&huge), Some(&json)));
+    assert_eq!(
+        (e.field.as_str(), e.reason.as_str()),
+        ("manifest.obs_normalization.mean[0]", "is not finite")
+    );
+    for (clip_obs, epsilon, field) in [(0.0, 1e-8, "clip_obs"), (10.0, 0.0, "epsilon")] {
+        let n = crate::manifest::ObsNormalization {
+            clip_obs,
+            epsilon,
+            ..vec_normalize()
+        };
+        assert!(
+            reason(normalized(&plain, n))
+                .starts_with(&format!("manifest.obs_normalization.{field}: is 0")),
+        );
+    }
+    // Bundles without it say nothing of it.
+    let json = serde_json::to_string(&plain.manifest).unwrap();
+    assert!(!json.contains("obs_normalization"), "{json}");
+}

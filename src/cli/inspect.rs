@@ -30,10 +30,23 @@ pub fn run(path: &Path, json: bool) -> anyhow::Result<String> {
     line(format!("action_low   {:?}", m.action_low));
     line(format!("action_high  {:?}", m.action_high));
     line(format!("gamma        {}", m.gamma));
+    let clip = m
+        .actor
+        .mean_clip
+        .map(|c| format!(", mean clipped to +-{c}"))
+        .unwrap_or_default();
     line(format!(
-        "actor        hidden {:?} {:?}",
-        m.actor.hidden, m.actor.activation
+        "actor        {}, hidden {:?} {:?}{clip}",
+        m.actor.kind.as_str(),
+        m.actor.hidden,
+        m.actor.activation
     ));
+    if let Some(n) = &m.obs_normalization {
+        line(format!(
+            "observations normalised for the actor and critics: clip((s - mean) / sqrt(var + {}), +-{})",
+            n.epsilon, n.clip_obs
+        ));
+    }
     line(format!(
         "critics      {} x hidden {:?} {:?}, Q = {} of critics",
         m.critic.n_critics,

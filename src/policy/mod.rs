@@ -103,6 +103,10 @@ fn aggregate(how: QAggregation, k: usize, acc: f32, value: f32) -> f32 {
 #[derive(Clone, Debug)]
 pub struct Evaluator {
     policy: Arc<Policy>,
+    /// The bundle's observation normalisation as (mean, 1 / std, clip), for the actor and critics.
+    obs_scale: Option<(Vec<f32>, Vec<f32>, f32)>,
+    /// Normalised observations of the current call.
+    normalized: Vec<f32>,
     actor: MlpScratch,
     mu: Vec<f32>,
     log_std: Vec<f32>,
@@ -129,6 +133,12 @@ impl Evaluator {
     pub fn with_capacity(policy: Arc<Policy>, rows: usize) -> Evaluator {
         let (od, ad) = (policy.obs_dim(), policy.act_dim());
         Evaluator {
+            obs_scale: policy
+                .manifest
+                .obs_normalization
+                .as_ref()
+                .map(|n| (n.mean.clone(), n.inverse_std(), n.clip_obs)),
+            normalized: Vec::with_capacity(rows * od),
             actor: policy.actor.trunk.scratch_for(rows),
             mu: Vec::with_capacity(rows * ad),
             log_std: Vec::with_capacity(rows * ad),
@@ -163,6 +173,7 @@ impl Networks for Evaluator {
         let actor = &self.policy.actor;
         let n = obs.len() / self.policy.obs_dim();
         let ad = self.policy.act_dim();
+        let obs = normalize(&self.obs_scale, obs, &mut self.normalized);
         let latent = actor.trunk.forward_rows(obs, &mut self.actor);
         resize(&mut self.mu, n * ad);
         actor.mu.forward_rows(latent, &mut self.mu);
@@ -184,6 +195,7 @@ impl Networks for Evaluator {
     fn q_pair(&mut self, obs: &[f32], a: &[f32], b: &[f32], q_a: &mut [f32], q_b: &mut [f32]) {
         let (od, ad) = (self.policy.obs_dim(), self.policy.act_dim());
         let n = obs.len() / od;
+        let obs = normalize(&self.obs_scale, obs, &mut self.normalized);
         self.critic_input.clear();
         for actions in [a, b] {
             for k in 0..n {
@@ -242,6 +254,27 @@ impl Networks for Evaluator {
             }
         }
     }
+}
+
+/// The observations as the actor and critics see them: `obs` itself, or normalised into `out`.
+fn normalize<'a>(
+    scale: &Option<(Vec<f32>, Vec<f32>, f32)>,
+    obs: &'a [f32],
+    out: &'a mut Vec<f32>,
+) -> &'a [f32] {
+    let Some((mean, inverse_std, clip)) = scale else {
+        return obs;
+    };
+    out.clear();
+    for row in obs.chunks_exact(mean.len()) {
+        out.extend(
+            row.iter()
+                .zip(mean)
+                .zip(inverse_std)
+                .map(|((s, m), k)| ((s - m) * k).clamp(-clip, *clip)),
+        );
+    }
+    out
 }
 
 /// Maps an action from [-1, 1] to the bounds [low, high] (the policy's or the domain's).

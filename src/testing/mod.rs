@@ -141,6 +141,7 @@ pub fn test_manifest(
             v_pi: 10.0,
             v_rand: -10.0,
         }),
+        obs_normalization: None,
         provenance: Provenance {
             trainer: "random init (test)".to_string(),
             steps: 0,

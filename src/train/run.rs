@@ -85,6 +85,7 @@ pub fn manifest(
         }),
         q_aggregation: QAggregation::Min,
         value_scale: None,
+        obs_normalization: None,
         provenance: Provenance {
             trainer: "prac train (SAC + dynamics model, burn 0.22.1)".to_string(),
             steps,

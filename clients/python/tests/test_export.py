@@ -231,3 +231,80 @@ def test_the_discounted_values_are_measured_on_the_same_seeds() -> None:
     assert first[0] == pytest.approx(expected_pi)
     with pytest.raises(ValueError, match="episodes is 0"):
         measure(env, act, 0.98, 0, seed=0)
+
+
+class RunningMeanStd:
+    """Pickled as SB3's: the reader turns any class it names into a holder of its attributes."""
+
+    def __init__(self, mean: list[float], var: list[float]) -> None:
+        self.mean, self.var, self.count = np.asarray(mean), np.asarray(var), 1000.0
+
+
+class VecNormalize:
+    def __init__(self, **fields: object) -> None:
+        self.__dict__.update(fields)
+
+
+class Evil:
+    def __reduce__(self) -> tuple[object, tuple[str]]:
+        import os
+
+        return (os.system, ("echo pwned",))
+
+
+def test_vecnormalize_statistics_are_read_without_running_the_pickle(tmp_path: pathlib.Path) -> None:
+    import pickle
+
+    from prac_client import vecnormalize
+
+    stats_file = tmp_path / "agent" / "vecnormalize.pkl"
+    stats_file.parent.mkdir()
+    normalizer = VecNormalize(
+        obs_rms=RunningMeanStd([0.5, -1.0, 2.0], [4.0, 0.25, 0.0]),
+        clip_obs=3.0,
+        epsilon=1e-8,
+        norm_obs=True,
+        norm_reward=False,
+        gamma=0.99,
+    )
+    stats_file.write_bytes(pickle.dumps(normalizer))
+    stats = vecnormalize.read(stats_file)
+    assert (stats.norm_obs, stats.norm_reward, stats.clip_obs) == (True, False, 3.0)
+    np.testing.assert_allclose(stats.normalize([2.5, -1.25, 0.001]), [1.0, -0.5, -3.0], rtol=1e-6)
+    assert stats.bundle_field() == {"mean": [0.5, -1.0, 2.0], "var": [4.0, 0.25, 0.0], "clip_obs": 3.0, "epsilon": 1e-8}
+    # Found beside the zip, or in ENV_ID/ beside ENV_ID.zip as the rl-zoo keeps it.
+    assert vecnormalize.find(tmp_path / "agent" / "model.zip") == stats_file
+    assert vecnormalize.find(tmp_path / "agent.zip") == stats_file
+    assert vecnormalize.find(tmp_path / "other.zip") is None
+    # A pickle that would run a command is refused; so is anything that is not a VecNormalize.
+    evil = tmp_path / "evil.pkl"
+    evil.write_bytes(pickle.dumps(Evil()))
+    with pytest.raises(ValueError, match=r"not a readable VecNormalize file \(refuses posix.system\)"):
+        vecnormalize.read(evil)
+    (tmp_path / "list.pkl").write_bytes(pickle.dumps([1, 2]))
+    with pytest.raises(ValueError, match="not a VecNormalize file"):
+        vecnormalize.read(tmp_path / "list.pkl")
+    (tmp_path / "short.pkl").write_bytes(pickle.dumps(normalizer)[:20])
+    with pytest.raises(ValueError, match="not a readable VecNormalize file"):
+        vecnormalize.read(tmp_path / "short.pkl")
+
+
+def test_an_obs_normalization_makes_a_format_2_bundle_the_server_checks(tmp_path: pathlib.Path) -> None:
+    state = random_sb3_state_dict(3, 1, [16], seed=2)
+    common = dict(name="n", domain="pendulum", action_low=[-2.0], action_high=[2.0], gamma=0.99,
+                  model=random_model(3, 1, [8], seed=1))
+    tensors, manifest = from_sb3_state_dict(
+        state, obs_normalization={"mean": [0, 0, 0], "var": [1, 1, 1], "clip_obs": 10, "epsilon": 1e-8}, **common
+    )
+    assert manifest["format_version"] == 2
+    write_bundle(tmp_path / "n.safetensors", tensors, manifest)
+    # A variance the server cannot use is refused at load, with the field named.
+    tensors, manifest = from_sb3_state_dict(
+        state, obs_normalization={"mean": [0, 0, 0], "var": [1, -1, 1], "clip_obs": 10, "epsilon": 1e-8}, **common
+    )
+    write_bundle(tmp_path / "bad.safetensors", tensors, manifest)
+    result = subprocess.run(
+        [prac_bin(), "inspect", str(tmp_path / "bad.safetensors")], capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode != 0
+    assert "obs_normalization.var[1]: is -1, a variance must be >= 0" in result.stderr + result.stdout

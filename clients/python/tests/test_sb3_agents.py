@@ -162,3 +162,88 @@ def test_export_measures_the_value_scale_on_the_env(
         assert manifest["value_scale"] == {"v_pi": pytest.approx(v_pi), "v_rand": pytest.approx(v_rand)}
     else:
         assert manifest["value_scale"] is None
+
+
+def _train_behind_vecnormalize(directory: pathlib.Path, norm_reward: bool) -> tuple[Any, Any, pathlib.Path]:
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    torch.set_num_threads(1)
+    venv = VecNormalize(make_vec_env("Pendulum-v1", n_envs=1, seed=0), norm_obs=True, norm_reward=norm_reward, clip_obs=5.0)
+    model = SAC("MlpPolicy", venv, seed=0, learning_starts=100, policy_kwargs={"net_arch": [32, 32]})
+    model.learn(300)
+    # The rl-zoo's layout: ENV_ID.zip beside ENV_ID/vecnormalize.pkl.
+    model.save(directory / "Pendulum-v1")
+    (directory / "Pendulum-v1").mkdir()
+    venv.save(str(directory / "Pendulum-v1" / "vecnormalize.pkl"))
+    return model, venv, directory / "Pendulum-v1.zip"
+
+
+def test_an_agent_trained_behind_vecnormalize_serves_on_raw_observations(
+    tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from prac_client import vecnormalize
+
+    model, venv, zip_file = _train_behind_vecnormalize(tmp_path / "agent", norm_reward=False)
+    bundles = tmp_path / "bundles"
+    bundles.mkdir()
+    out = bundles / "normed.safetensors"
+    assert export_main([str(zip_file), "--out", str(out), "--env", "Pendulum-v1", "--episodes", "2"]) == 0
+    printed = capsys.readouterr().out
+    assert "observations normalised, rewards raw" in printed
+    # The value scale is measured with the agent behind its statistics.
+    env = gymnasium.make("Pendulum-v1")
+    v_pi, v_rand = measure(env, lambda o: model.predict(venv.normalize_obs(o), deterministic=True)[0], model.gamma, 2, 0)
+    assert f"V_pi = {v_pi:.4f}, V_rand = {v_rand:.4f}" in printed
+    tensors, manifest = read_bundle(out)
+    assert manifest["format_version"] == 2
+    stats = manifest["obs_normalization"]
+    np.testing.assert_allclose(stats["mean"], venv.obs_rms.mean, rtol=1e-6)
+    np.testing.assert_allclose(stats["var"], venv.obs_rms.var, rtol=1e-6)
+    assert (stats["clip_obs"], stats["epsilon"]) == (5.0, pytest.approx(venv.epsilon))
+    # The server needs a dynamics model; it speaks raw observations.
+    full_tensors, full_manifest = from_sb3_state_dict(
+        load_sb3_zip(zip_file)[0],
+        name="normed",
+        domain="pendulum",
+        action_low=manifest["action_low"],
+        action_high=manifest["action_high"],
+        gamma=manifest["gamma"],
+        model=random_model(3, 1, [16], seed=1),
+        obs_normalization=stats,
+    )
+    write_bundle(out, full_tensors, full_manifest)
+    assert vecnormalize.read(zip_file.with_suffix("") / "vecnormalize.pkl").norm_obs
+    server = Server(bundles)
+    try:
+        with Client(server.address, timeout=10) as client, client.session("normed", max_horizon=1) as session:
+            for k in range(20):
+                obs = env.reset(seed=k)[0] if k < 10 else env.observation_space.sample()
+                served = session.reset(np.asarray(obs, dtype=np.float32))
+                assert served is not None
+                expected, _ = model.predict(venv.normalize_obs(obs), deterministic=True)
+                np.testing.assert_allclose(served.action, expected, rtol=1e-4, atol=1e-4)
+                # Raw observations would act otherwise: the normalisation is not a no-op.
+                unnormalised, _ = model.predict(obs, deterministic=True)
+                assert k >= 10 or not np.allclose(unnormalised, expected, atol=1e-3)
+    finally:
+        server.stop()
+    # record --sb3 plays the agent behind its statistics and keeps raw observations.
+    recorded = tmp_path / "t.safetensors"
+    assert record_main(["--env", "Pendulum-v1", "--episodes", "1", "--out", str(recorded), "--sb3", str(zip_file)]) == 0
+    from safetensors.numpy import load_file
+
+    data = load_file(str(recorded))
+    np.testing.assert_allclose(data["obs"][0], env.reset(seed=0)[0], rtol=1e-6)
+    expected, _ = model.predict(venv.normalize_obs(data["obs"][0]), deterministic=True)
+    np.testing.assert_allclose(data["action"][0], expected, rtol=1e-5, atol=1e-5)
+
+
+def test_normalised_rewards_give_no_value_scale(tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]) -> None:
+    _, _, zip_file = _train_behind_vecnormalize(tmp_path, norm_reward=True)
+    with pytest.raises(SystemExit, match="trained on normalised rewards"):
+        export_main([str(zip_file), "--out", str(tmp_path / "x.safetensors"), "--env", "Pendulum-v1"])
+    assert export_main([str(zip_file), "--out", str(tmp_path / "x.safetensors")]) == 0
+    assert "the bundle has no value scale" in capsys.readouterr().out
+    _, manifest = read_bundle(tmp_path / "x.safetensors")
+    assert manifest["value_scale"] is None and "obs_normalization" in manifest

@@ -13,8 +13,8 @@ import numpy as np
 import numpy.typing as npt
 
 FORMAT_VERSION = 1
-# Version 2 adds the actor's kind (gaussian_sde, deterministic) and mean_clip; a Gaussian actor's
-# bundle stays version 1, so any prac reads it.
+# Version 2 adds the actor's kind (gaussian_sde, deterministic), mean_clip and obs_normalization; a
+# bundle that uses none of them stays version 1, so any prac reads it.
 FORMAT_VERSION_ACTOR_KINDS = 2
 ACTOR_KINDS = ("gaussian", "gaussian_sde", "deterministic")
 Array = npt.NDArray[np.float32]
@@ -82,12 +82,15 @@ def from_sb3_state_dict(
     model: Mapping[str, Any] | None = None,
     actor_kind: str = "gaussian",
     mean_clip: float | None = None,
+    obs_normalization: Mapping[str, Any] | None = None,
 ) -> tuple[dict[str, Array], dict[str, Any]]:
     """Maps an SB3 SAC, TD3 or DDPG policy state dict (actor.*, critic.qf{k}.*; the target
     networks are dropped) to bundle tensors and manifest. `actor_kind` is "gaussian" (SAC),
     "gaussian_sde" (SAC with gSDE; `mean_clip` its clip_mean, None where it did not clip) or
     "deterministic" (TD3, DDPG). Layer sizes come from the shapes. `model`, if given, holds the
-    dynamics model: {"tensors": {model.net.*}, "hidden", "activation", "normalization"}."""
+    dynamics model: {"tensors": {model.net.*}, "hidden", "activation", "normalization"}.
+    `obs_normalization` ({"mean", "var", "clip_obs", "epsilon"}, as SB3's VecNormalize applies
+    them) is what the actor and critics were trained behind."""
     if actor_kind not in ACTOR_KINDS:
         raise ValueError(f"actor kind {actor_kind!r}; expected one of {', '.join(ACTOR_KINDS)}")
     if mean_clip is not None and actor_kind != "gaussian_sde":
@@ -123,7 +126,9 @@ def from_sb3_state_dict(
         if mean_clip is not None:
             actor["mean_clip"] = float(mean_clip)
     manifest: dict[str, Any] = {
-        "format_version": FORMAT_VERSION if actor_kind == "gaussian" else FORMAT_VERSION_ACTOR_KINDS,
+        "format_version": (
+            FORMAT_VERSION if actor_kind == "gaussian" and obs_normalization is None else FORMAT_VERSION_ACTOR_KINDS
+        ),
         "name": name,
         "domain": domain,
         "obs_dim": int(obs_dim),
@@ -144,6 +149,13 @@ def from_sb3_state_dict(
             **(provenance or {}),
         },
     }
+    if obs_normalization is not None:
+        manifest["obs_normalization"] = {
+            "mean": [float(v) for v in obs_normalization["mean"]],
+            "var": [float(v) for v in obs_normalization["var"]],
+            "clip_obs": float(obs_normalization["clip_obs"]),
+            "epsilon": float(obs_normalization["epsilon"]),
+        }
     if model is not None:
         for key, value in model["tensors"].items():
             tensors[key] = np.asarray(value, dtype=np.float32)

@@ -5,7 +5,9 @@
 
 --sb3 plays an SB3 SAC, TD3 or DDPG checkpoint, loaded as rl-zoo's enjoy.py loads one (its
 pickled schedules replaced and its spaces taken from the environment, so zips saved with gym
-load under gymnasium). gym's MuJoCo ids (Hopper-v3, ...) are played as gymnasium's v4 ports,
+load under gymnasium), behind its VecNormalize statistics where it has them (vecnormalize.pkl
+beside the zip as the rl-zoo keeps it, or --vecnormalize FILE); transitions keep raw
+observations. gym's MuJoCo ids (Hopper-v3, ...) are played as gymnasium's v4 ports,
 with a warning.
 
 Writes float32 arrays obs [N, obs_dim], action [N, act_dim] (as executed, in the environment's
@@ -85,7 +87,9 @@ def load_sb3(path: str, env: Any) -> Any:
         algorithm = algorithm_of(data, {})[0]
     except ValueError as e:
         raise SystemExit(f"{path}: {e}") from None
-    cls = {"TD3": TD3, "DDPG": DDPG}.get(algorithm, SAC)
+    # SB3 types `load` on each class; the table would otherwise widen them to ABCMeta.
+    classes: dict[str, Any] = {"SAC": SAC, "TD3": TD3, "DDPG": DDPG}
+    cls = classes.get(algorithm, SAC)
     custom_objects = {
         "learning_rate": 0.0,
         "lr_schedule": lambda _: 0.0,
@@ -94,6 +98,27 @@ def load_sb3(path: str, env: Any) -> Any:
         "action_space": env.action_space,
     }
     return cls.load(checkpoint, device="cpu", custom_objects=custom_objects)
+
+
+def sb3_policy(
+    path: str, env: Any, vecnormalize: str | None = None
+) -> Callable[[npt.NDArray[np.float32]], npt.NDArray[np.float32]]:
+    """SB3's deterministic action for a raw observation: the checkpoint loaded by `load_sb3`,
+    behind its VecNormalize statistics where it has them (`vecnormalize`, or the file found beside
+    the checkpoint as the rl-zoo keeps it)."""
+    from prac_client import vecnormalize as vn
+    from prac_client.export_sb3 import zip_path
+
+    model = load_sb3(path, env)
+    stats_file, stats = vn.for_checkpoint(zip_path(path), vecnormalize)
+    if stats_file:
+        print(f"observations normalised as {stats_file} says", file=sys.stderr)
+
+    def act(obs: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+        seen = stats.normalize(obs) if stats else obs
+        return np.asarray(model.predict(seen, deterministic=True)[0], dtype=np.float32)
+
+    return act
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -106,6 +131,9 @@ def main(argv: list[str] | None = None) -> int:
     source.add_argument("--server", help="a prac server address (with --policy)")
     source.add_argument("--sb3", help="an SB3 SAC, TD3 or DDPG checkpoint (.zip); needs stable-baselines3")
     parser.add_argument("--policy", help="the served policy's name")
+    parser.add_argument(
+        "--vecnormalize", help="the --sb3 agent's VecNormalize file [default: vecnormalize.pkl found beside it]"
+    )
     tolerance = parser.add_mutually_exclusive_group()
     tolerance.add_argument("--epsilon", type=float, help="absolute tolerance [default: the server's, 0]")
     tolerance.add_argument("--epsilon-coef", type=float, help="tolerance as a coefficient (needs a value scale)")
@@ -132,11 +160,10 @@ def main(argv: list[str] | None = None) -> int:
         client.close()
         source_name = f"prac:{args.server}/{args.policy}"
     else:
-        model = load_sb3(args.sb3, env)
+        policy = sb3_policy(args.sb3, env, args.vecnormalize)
 
         def act_sb3(obs: npt.NDArray[np.float32], first: bool) -> npt.NDArray[np.float32]:
-            action, _ = model.predict(obs, deterministic=True)
-            return np.asarray(action, dtype=np.float32)
+            return policy(obs)
 
         data = record(env, act_sb3, args.episodes, seed=args.seed)
         source_name = f"sb3:{args.sb3}"

@@ -80,6 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("bundle", help="the bundle to rewrite (NAME.safetensors)")
     parser.add_argument("--env", help="gymnasium environment id to measure on, e.g. Pendulum-v1")
     parser.add_argument("--sb3", help="the SB3 checkpoint the bundle was exported from")
+    parser.add_argument("--vecnormalize", help="its VecNormalize file [default: vecnormalize.pkl found beside it]")
     parser.add_argument("--episodes", type=int, default=50)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--v-pi", type=float)
@@ -93,14 +94,17 @@ def main(argv: list[str] | None = None) -> int:
     else:
         import gymnasium
 
-        from prac_client.record import gymnasium_id, load_sb3
+        from prac_client import vecnormalize
+        from prac_client.export_sb3 import zip_path
+        from prac_client.record import gymnasium_id, sb3_policy
 
+        stats_file, stats = vecnormalize.for_checkpoint(zip_path(args.sb3), args.vecnormalize)
+        if stats is not None and stats.norm_reward:
+            raise SystemExit(f"{stats_file}: {vecnormalize.NORMALISED_REWARDS}")
         _, manifest = read_bundle(args.bundle)
         env = gymnasium.make(gymnasium_id(args.env))
-        model = load_sb3(args.sb3, env)
-        v_pi, v_rand = measure(
-            env, lambda obs: model.predict(obs, deterministic=True)[0], manifest["gamma"], args.episodes, args.seed
-        )
+        policy = sb3_policy(args.sb3, env, args.vecnormalize)
+        v_pi, v_rand = measure(env, policy, manifest["gamma"], args.episodes, args.seed)
     try:
         set_value_scale(args.bundle, v_pi, v_rand)
     except ValueError as e:
