@@ -161,11 +161,19 @@ fn training_with_prac_commits_to_plans_and_fit_model_fits_a_model() {
         obs: vec![],
         action: vec![],
         next_obs: vec![],
+        exploratory: Some(vec![]),
     };
     for episode in 0..10 {
         env.reset(episode, &mut obs).unwrap();
         for t in 0..200u32 {
-            let action = [2.0 * ((t as f32 * 0.37 + episode as f32).sin())];
+            // A fifth of the rows explore: another action, flagged as record --random-fraction does.
+            let explore = t % 10 < 2;
+            let action = if explore {
+                [2.0 * ((t as f32 * 1.3 + episode as f32).cos())]
+            } else {
+                [2.0 * ((t as f32 * 0.37 + episode as f32).sin())]
+            };
+            data.exploratory.as_mut().unwrap().push(explore);
             let step = env.step(&action, &mut next).unwrap();
             data.obs.extend_from_slice(&obs);
             data.action.extend_from_slice(&action);
@@ -211,6 +219,22 @@ fn training_with_prac_commits_to_plans_and_fit_model_fits_a_model() {
     assert!(one_step < 0.1, "{report}");
     assert!(ten_step > one_step, "{report}");
     assert!(prac::bundle::load(&fitted).unwrap().model.is_some());
+    // Split by action: 160 held-out rows acted as the policy, 40 explored; every window is in
+    // exactly one group.
+    let split = &report["after_by_action"];
+    let samples = |group: &str, i: usize| split[group][i]["samples"].as_u64().unwrap();
+    assert_eq!(
+        (samples("on_policy", 0), samples("exploratory", 0)),
+        (160, 40)
+    );
+    for (i, row) in after.iter().enumerate() {
+        let all = row["samples"].as_u64().unwrap();
+        assert_eq!(samples("on_policy", i) + samples("exploratory", i), all);
+    }
+    // Every 10-step window holds a randomised row (two in each ten): none is on-policy, and an
+    // error over no windows is absent, not zero.
+    assert_eq!(samples("on_policy", 2), 0);
+    assert!(split["on_policy"][2]["nrmse"].is_null(), "{split}");
 
     // Bad transitions are refused with the field named.
     std::fs::write(&file, b"not safetensors").unwrap();

@@ -146,16 +146,50 @@ pub struct ModelError {
 pub struct Trajectory<'a> {
     pub observations: &'a [f32],
     pub actions: &'a [f32],
+    /// Per action, whether it was exploratory (random or noisy, not the policy's own); empty
+    /// where that was not recorded.
+    pub exploratory: &'a [bool],
 }
 
+/// The model's k-step errors over every window of the trajectories.
 pub fn model_errors(
     policy: &std::sync::Arc<Policy>,
     trajectories: &[Trajectory<'_>],
     ks: &[usize],
 ) -> Vec<ModelError> {
+    grouped_model_errors(policy, trajectories, ks, 1, |_, _| 0).remove(0)
+}
+
+/// The k-step errors of windows whose actions were all the policy's own, and of windows with an
+/// exploratory action.
+pub fn model_errors_by_action(
+    policy: &std::sync::Arc<Policy>,
+    trajectories: &[Trajectory<'_>],
+    ks: &[usize],
+) -> (Vec<ModelError>, Vec<ModelError>) {
+    let mut groups = grouped_model_errors(policy, trajectories, ks, 2, |traj, window| {
+        usize::from(
+            traj.exploratory
+                .get(window)
+                .is_some_and(|w| w.contains(&true)),
+        )
+    });
+    let exploratory = groups.remove(1);
+    (groups.remove(0), exploratory)
+}
+
+/// Normalised RMS errors of k-step rollouts from every start, averaged per group of windows
+/// (`group` of a trajectory and the window's action rows).
+fn grouped_model_errors(
+    policy: &std::sync::Arc<Policy>,
+    trajectories: &[Trajectory<'_>],
+    ks: &[usize],
+    groups: usize,
+    group: impl Fn(&Trajectory<'_>, std::ops::Range<usize>) -> usize,
+) -> Vec<Vec<ModelError>> {
     let (od, ad) = (policy.obs_dim(), policy.act_dim());
     let Some(model) = &policy.model else {
-        return Vec::new();
+        return vec![Vec::new(); groups];
     };
     let scale: Vec<f64> = model
         .normalization
@@ -165,8 +199,8 @@ pub fn model_errors(
         .collect();
     let mut evaluator = Evaluator::new(policy.clone());
     let kmax = ks.iter().copied().max().unwrap_or(0);
-    let mut sums = vec![0.0f64; kmax + 1];
-    let mut counts = vec![0usize; kmax + 1];
+    let mut sums = vec![vec![0.0f64; kmax + 1]; groups];
+    let mut counts = vec![vec![0usize; kmax + 1]; groups];
     let mut state = vec![0.0; od];
     let mut next = vec![0.0; od];
     for traj in trajectories {
@@ -181,16 +215,26 @@ pub fn model_errors(
                 let sq: f64 = (0..od)
                     .map(|i| ((f64::from(state[i]) - f64::from(truth[i])) / scale[i]).powi(2))
                     .sum();
-                sums[k] += (sq / od as f64).sqrt();
-                counts[k] += 1;
+                let g = group(traj, start..start + k);
+                sums[g][k] += (sq / od as f64).sqrt();
+                counts[g][k] += 1;
             }
         }
     }
-    ks.iter()
-        .map(|&k| ModelError {
-            k,
-            nrmse: sums[k] / counts[k].max(1) as f64,
-            samples: counts[k],
+    (0..groups)
+        .map(|g| {
+            ks.iter()
+                .map(|&k| ModelError {
+                    k,
+                    // No window of that length: no error (null in JSON), not a perfect one.
+                    nrmse: if counts[g][k] == 0 {
+                        f64::NAN
+                    } else {
+                        sums[g][k] / counts[g][k] as f64
+                    },
+                    samples: counts[g][k],
+                })
+                .collect()
         })
         .collect()
 }

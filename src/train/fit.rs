@@ -10,7 +10,7 @@ use rand_chacha::ChaCha8Rng;
 use safetensors::SafeTensors;
 use serde::Serialize;
 
-use super::eval::{ModelError, Trajectory, model_errors};
+use super::eval::{ModelError, Trajectory, model_errors, model_errors_by_action};
 use super::model::ModelTrainer;
 use super::sac::{SacConfig, train_device};
 use crate::bundle::ModelSpec;
@@ -23,6 +23,8 @@ pub struct Transitions {
     pub obs: Vec<f32>,
     pub action: Vec<f32>,
     pub next_obs: Vec<f32>,
+    /// Per row, whether its action was exploratory (the optional `explore` array).
+    pub exploratory: Option<Vec<bool>>,
 }
 
 fn tensor_f32(st: &SafeTensors, path: &Path, name: &str, cols: usize) -> anyhow::Result<Vec<f32>> {
@@ -54,7 +56,8 @@ fn tensor_f32(st: &SafeTensors, path: &Path, name: &str, cols: usize) -> anyhow:
 }
 
 impl Transitions {
-    /// Reads `obs` [N, obs_dim], `action` [N, act_dim] and `next_obs` [N, obs_dim] (f32).
+    /// Reads `obs` [N, obs_dim], `action` [N, act_dim] and `next_obs` [N, obs_dim] (f32), and
+    /// `explore` [N] (f32, nonzero where the action was exploratory) when present.
     pub fn load(path: &Path, obs_dim: usize, act_dim: usize) -> anyhow::Result<Transitions> {
         let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
         let st = SafeTensors::deserialize(&bytes)
@@ -83,11 +86,31 @@ impl Transitions {
                 path.display()
             );
         }
+        let exploratory = match st.tensor("explore") {
+            Err(_) => None,
+            Ok(view) => {
+                if view.dtype() != safetensors::Dtype::F32 || view.shape() != [len] {
+                    bail!(
+                        "{}: explore: {:?} {:?}; expected F32 [{len}]",
+                        path.display(),
+                        view.dtype(),
+                        view.shape()
+                    );
+                }
+                Some(
+                    view.data()
+                        .chunks_exact(4)
+                        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]) != 0.0)
+                        .collect(),
+                )
+            }
+        };
         Ok(Transitions {
             len,
             obs,
             action,
             next_obs,
+            exploratory,
         })
     }
 
@@ -102,7 +125,12 @@ impl Transitions {
         );
         let od = self.obs.len() / self.len;
         let ad = self.action.len() / self.len;
-        let views = vec![
+        let explore: Option<Vec<u8>> = self.exploratory.as_ref().map(|rows| {
+            rows.iter()
+                .flat_map(|&e| f32::from(u8::from(e)).to_le_bytes())
+                .collect()
+        });
+        let mut views = vec![
             (
                 "obs",
                 TensorView::new(safetensors::Dtype::F32, vec![self.len, od], &o)?,
@@ -116,28 +144,25 @@ impl Transitions {
                 TensorView::new(safetensors::Dtype::F32, vec![self.len, od], &n)?,
             ),
         ];
+        if let Some(e) = &explore {
+            views.push((
+                "explore",
+                TensorView::new(safetensors::Dtype::F32, vec![self.len], e)?,
+            ));
+        }
         std::fs::write(path, safetensors::serialize(views, None)?)?;
         Ok(())
     }
 }
 
 /// Splits rows into chains of consecutive transitions (next_obs of one is obs of the next).
-pub fn chains(
-    obs: &[f32],
-    actions: &[f32],
-    next_obs: &[f32],
-    od: usize,
-    ad: usize,
-) -> Vec<(Vec<f32>, Vec<f32>)> {
+pub fn chains(obs: &[f32], next_obs: &[f32], od: usize) -> Vec<std::ops::Range<usize>> {
     let n = obs.len() / od;
     let mut out = Vec::new();
     let mut start = 0;
     for i in 0..n {
-        let last = i + 1 == n || next_obs[i * od..(i + 1) * od] != obs[(i + 1) * od..(i + 2) * od];
-        if last {
-            let mut observations = obs[start * od..(i + 1) * od].to_vec();
-            observations.extend_from_slice(&next_obs[i * od..(i + 1) * od]);
-            out.push((observations, actions[start * ad..(i + 1) * ad].to_vec()));
+        if i + 1 == n || next_obs[i * od..(i + 1) * od] != obs[(i + 1) * od..(i + 2) * od] {
+            out.push(start..i + 1);
             start = i + 1;
         }
     }
@@ -153,6 +178,16 @@ pub struct FitReport {
     /// The bundle's model before fitting, when it had one.
     pub before: Vec<ModelError>,
     pub after: Vec<ModelError>,
+    /// `after` over held-out windows whose actions were all the policy's own, and over windows
+    /// with an exploratory action; only where the transitions say which rows explored.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub after_by_action: Option<ErrorsByAction>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct ErrorsByAction {
+    pub on_policy: Vec<ModelError>,
+    pub exploratory: Vec<ModelError>,
 }
 
 pub struct FitOptions {
@@ -209,18 +244,25 @@ pub fn fit_model(
             &mut delta,
         );
     }
-    let heldout = chains(
-        &data.obs[train * od..],
-        &squashed[train * ad..],
-        &data.next_obs[train * od..],
-        od,
-        ad,
-    );
+    let heldout: Vec<(Vec<f32>, std::ops::Range<usize>)> =
+        chains(&data.obs[train * od..], &data.next_obs[train * od..], od)
+            .into_iter()
+            .map(|rows| {
+                let rows = train + rows.start..train + rows.end;
+                let mut observations = data.obs[rows.start * od..rows.end * od].to_vec();
+                observations.extend_from_slice(&data.next_obs[(rows.end - 1) * od..rows.end * od]);
+                (observations, rows)
+            })
+            .collect();
     let trajectories: Vec<Trajectory> = heldout
         .iter()
-        .map(|(o, a)| Trajectory {
-            observations: o,
-            actions: a,
+        .map(|(observations, rows)| Trajectory {
+            observations,
+            actions: &squashed[rows.start * ad..rows.end * ad],
+            exploratory: data
+                .exploratory
+                .as_ref()
+                .map_or(&[][..], |e| &e[rows.clone()]),
         })
         .collect();
     let before = if policy.model.is_some() {
@@ -252,7 +294,16 @@ pub fn fit_model(
             normalization: model.normalization.clone(),
         });
     }
-    let after = model_errors(&Arc::new(fitted.clone()), &trajectories, &options.ks);
+    let fitted_arc = Arc::new(fitted.clone());
+    let after = model_errors(&fitted_arc, &trajectories, &options.ks);
+    let after_by_action = data.exploratory.as_ref().map(|_| {
+        let (on_policy, exploratory) =
+            model_errors_by_action(&fitted_arc, &trajectories, &options.ks);
+        ErrorsByAction {
+            on_policy,
+            exploratory,
+        }
+    });
     Ok((
         fitted,
         FitReport {
@@ -262,6 +313,7 @@ pub fn fit_model(
             final_loss,
             before,
             after,
+            after_by_action,
         },
     ))
 }

@@ -513,6 +513,7 @@ impl Trainer {
             .map(|e| Trajectory {
                 observations: &e.observations,
                 actions: &e.actions,
+                exploratory: &[],
             })
             .collect();
         let model_errors = eval::model_errors(&arc, &trajectories, &[1, 5, 10]);

@@ -28,3 +28,30 @@ def test_record_writes_transitions_from_a_served_policy(server: Server, tmp_path
     assert np.all(np.abs(data["action"]) <= 2.0)
     # Transitions chain within an episode: each next_obs is the following obs.
     np.testing.assert_array_equal(data["next_obs"][:199], data["obs"][1:200])
+
+
+def test_record_counts_steps_and_flags_what_it_randomised(server: Server, tmp_path: pathlib.Path) -> None:
+    for noise, out in (("0", tmp_path / "uniform.safetensors"), ("0.1", tmp_path / "noisy.safetensors")):
+        done = subprocess.run(
+            [sys.executable, "-m", "prac_client.record", "--env", "Pendulum-v1", "--steps", "450",
+             "--random-fraction", "0.3", "--action-noise", noise, "--seed", "4",
+             "--server", server.address, "--policy", "pendulum", "--out", str(out)],
+            capture_output=True, text=True, check=True,
+        )
+        summary = json.loads(done.stdout)
+        data = load_file(str(out))
+        # 450 transitions: two full episodes and a third cut short.
+        assert (summary["transitions"], summary["episodes"]) == (450, 3), summary
+        assert data["explore"].shape == (450,) and set(np.unique(data["explore"])) <= {0.0, 1.0}
+        assert summary["exploratory"] == int(data["explore"].sum())
+        assert 90 <= summary["exploratory"] <= 180, summary
+        assert np.all(np.abs(data["action"]) <= 2.0)
+    # The same seed randomises the same steps, whichever way it randomises them.
+    uniform, noisy = load_file(str(tmp_path / "uniform.safetensors")), load_file(str(tmp_path / "noisy.safetensors"))
+    np.testing.assert_array_equal(uniform["explore"][:200], noisy["explore"][:200])
+    bad = subprocess.run(
+        [sys.executable, "-m", "prac_client.record", "--env", "Pendulum-v1", "--steps", "10", "--random-fraction", "2",
+         "--server", server.address, "--policy", "pendulum", "--out", str(tmp_path / "x")],
+        capture_output=True, text=True,
+    )
+    assert bad.returncode == 2 and "random fraction 2.0; expected 0..1" in bad.stderr
