@@ -23,6 +23,11 @@ def test_record_writes_transitions_from_a_served_policy(server: Server, tmp_path
     summary = json.loads(done.stdout)
     assert (summary["transitions"], summary["episodes"], summary["seed"]) == (400, 2, 0)
     data = load_file(str(out))
+    # The summary's returns are the recorded episodes' reward sums.
+    returns = [data["reward"][:200].sum(), data["reward"][200:].sum()]
+    assert abs(summary["return_mean"] - np.mean(returns)) < 1e-3, summary
+    # What the server committed to, as it reported it (at least the action executed now).
+    assert summary["forecast_mean"] >= 1 and summary["f_t_mean"] >= 1, summary
     assert data["obs"].shape == (400, 3) and data["next_obs"].shape == (400, 3)
     assert data["action"].shape == (400, 1) and data["reward"].shape == (400,)
     assert np.all(np.abs(data["action"]) <= 2.0)
@@ -45,6 +50,9 @@ def test_record_counts_steps_and_flags_what_it_randomised(server: Server, tmp_pa
         assert data["explore"].shape == (450,) and set(np.unique(data["explore"])) <= {0.0, 1.0}
         assert summary["exploratory"] == int(data["explore"].sum())
         assert 90 <= summary["exploratory"] <= 180, summary
+        # Only the two whole episodes count towards the return.
+        whole = [data["reward"][:200].sum(), data["reward"][200:400].sum()]
+        assert abs(summary["return_mean"] - np.mean(whole)) < 1e-3, summary
         assert np.all(np.abs(data["action"]) <= 2.0)
     # The same seed randomises the same steps, whichever way it randomises them.
     uniform, noisy = load_file(str(tmp_path / "uniform.safetensors")), load_file(str(tmp_path / "noisy.safetensors"))

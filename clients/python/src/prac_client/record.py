@@ -221,13 +221,20 @@ def main(argv: list[str] | None = None) -> int:
         client = Client(args.server)
         session = client.session(args.policy, epsilon=args.epsilon, epsilon_coef=args.epsilon_coef)
 
+        forecasts: list[int] = []
+        f_ts: list[int] = []
+
         def act(obs: npt.NDArray[np.float32], first: bool) -> npt.NDArray[np.float32]:
-            return session.step(obs, new_episode=first).action
+            result = session.step(obs, new_episode=first)
+            forecasts.append(result.forecast_length)
+            f_ts.append(result.f_t)
+            return result.action
 
         data = record(env, act, **what)
         session.close()
         client.close()
         source_name = f"prac:{args.server}/{args.policy}"
+        served = {"forecast_mean": float(np.mean(forecasts)), "f_t_mean": float(np.mean(f_ts))}
     else:
         policy = sb3_policy(args.sb3, env, args.vecnormalize)
 
@@ -236,14 +243,19 @@ def main(argv: list[str] | None = None) -> int:
 
         data = record(env, act_sb3, **what)
         source_name = f"sb3:{args.sb3}"
+        served = {}
     # An episode starts wherever a row does not continue the one before it.
-    episodes = 1 + int(np.any(data["next_obs"][:-1] != data["obs"][1:], axis=1).sum())
-    facts = {"episodes": episodes, "seed": args.seed, "policy": source_name}
+    starts = [0, *(1 + np.flatnonzero(np.any(data["next_obs"][:-1] != data["obs"][1:], axis=1))), len(data["obs"])]
+    returns = [float(data["reward"][a:b].sum()) for a, b in zip(starts[:-1], starts[1:])]
+    if args.steps is not None and len(returns) > 1:
+        returns.pop()  # the episode --steps cut short
+    facts = {"episodes": len(starts) - 1, "seed": args.seed, "policy": source_name}
     facts.update({"random_fraction": args.random_fraction, "action_noise": args.action_noise})
     save_file(data, args.out, metadata={"env": args.env, **{k: str(v) for k, v in facts.items()}})
     # safetensors metadata holds strings; the printed summary keeps numbers as numbers.
     summary = {"out": args.out, "transitions": int(data["obs"].shape[0]), "env": args.env}
     summary.update({**facts, "exploratory": int(data["explore"].sum())})
+    summary.update({"return_mean": float(np.mean(returns)), "return_std": float(np.std(returns)), **served})
     print(json.dumps(summary))
     return 0
 
