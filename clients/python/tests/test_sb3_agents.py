@@ -228,9 +228,11 @@ def test_an_agent_trained_behind_vecnormalize_serves_on_raw_observations(
                 assert k >= 10 or not np.allclose(unnormalised, expected, atol=1e-3)
     finally:
         server.stop()
-    # record --sb3 plays the agent behind its statistics and keeps raw observations.
+    # record --sb3 plays the agent behind its statistics and keeps raw observations; the path
+    # without .zip names the zip even where the zoo's folder of that name sits beside it.
     recorded = tmp_path / "t.safetensors"
-    assert record_main(["--env", "Pendulum-v1", "--episodes", "1", "--out", str(recorded), "--sb3", str(zip_file)]) == 0
+    stem = str(zip_file.with_suffix(""))
+    assert record_main(["--env", "Pendulum-v1", "--episodes", "1", "--out", str(recorded), "--sb3", stem]) == 0
     from safetensors.numpy import load_file
 
     data = load_file(str(recorded))

@@ -77,9 +77,10 @@ def spaces_from_sb3_data(data: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def zip_path(path: str | pathlib.Path) -> pathlib.Path:
-    """The checkpoint's file: PATH, or PATH.zip as SB3's load accepts it."""
+    """The checkpoint's file: PATH, or PATH.zip as SB3's load accepts it (also where PATH is the
+    rl-zoo's folder of the same name beside the zip)."""
     path = pathlib.Path(path)
-    if not path.exists() and path.suffix != ".zip" and path.with_name(path.name + ".zip").exists():
+    if not path.is_file() and path.suffix != ".zip" and path.with_name(path.name + ".zip").is_file():
         return path.with_name(path.name + ".zip")
     return path
 
