@@ -4,7 +4,7 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use prac::train::eval::{Episode, mean_std, policy_episodes, random_episodes};
+use prac::train::eval::{Episode, mean_std, policy_episodes};
 
 fn play(domain: &str, episodes: usize) -> (Arc<prac::policy::Policy>, Vec<Episode>) {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("bundles/{domain}.safetensors"));
@@ -90,24 +90,14 @@ fn the_shipped_hopper_bundle_hops_forward_without_falling() {
     walks_forward_without_falling("hopper");
 }
 
-/// The Humanoid neither keeps its balance nor walks yet on the domain as PyBullet simulates it
-/// (docs/results.md): its bundle, continued from one trained on the earlier physics, stays up
-/// longer and earns more than random actions on the same seeds.
+/// The Humanoid's criterion: upright for all 1000 steps in at least 80% of episodes, walking at
+/// least 10 m forward on average (a fallen episode counts with the distance it made).
 #[test]
-fn the_shipped_humanoid_bundle_outlasts_random_actions() {
-    let (policy, episodes) = play("humanoid", 5);
-    let mut env = prac::domains::make("humanoid").unwrap();
-    let random = random_episodes(env.as_mut(), policy.manifest.gamma, 5, 777_000).unwrap();
-    let length = |e: &[Episode]| e.iter().map(|e| e.len as f64).sum::<f64>() / e.len() as f64;
-    let (ours, theirs) = (mean_return(&episodes), mean_return(&random));
-    assert!(
-        ours > theirs + 100.0,
-        "return {ours} against random {theirs}"
-    );
-    assert!(
-        length(&episodes) > 2.0 * length(&random),
-        "{} steps against random {}",
-        length(&episodes),
-        length(&random)
-    );
+fn the_shipped_humanoid_bundle_walks_without_falling() {
+    let (_, episodes) = play("humanoid", 5);
+    let upright = count_upright(&episodes);
+    assert!(upright >= 4, "{upright} of 5 upright");
+    let distances: Vec<f64> = episodes.iter().map(|e| e.distance.unwrap()).collect();
+    let mean = mean_std(&distances).0;
+    assert!(mean >= 10.0, "walked {mean} m on average: {distances:?}");
 }
