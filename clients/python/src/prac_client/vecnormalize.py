@@ -4,8 +4,9 @@ code from the pickle.
 An agent trained behind VecNormalize acts on `clip((s - mean) / sqrt(var + epsilon), +-clip_obs)`;
 its bundle carries those numbers as `obs_normalization` and the server applies them in front of
 the actor and critics. The pickle is read with an unpickler that builds numpy arrays and plain
-attribute holders only: every other class it names (VecNormalize, RunningMeanStd, the spaces) is
-replaced by a holder of its attributes, and functions are refused.
+attribute holders only: every other name it meets (VecNormalize, RunningMeanStd, the spaces) is
+replaced by a holder of its attributes, never called as what it names, and names from os,
+subprocess, builtins and the like are refused outright.
 """
 
 from __future__ import annotations
