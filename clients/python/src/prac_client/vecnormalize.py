@@ -107,7 +107,7 @@ def read(path: str | pathlib.Path) -> Stats:
     try:
         with open(path, "rb") as f:
             loaded = _Unpickler(f).load()
-    except (OSError, pickle.UnpicklingError, EOFError, AttributeError, ValueError, TypeError, IndexError) as e:
+    except Exception as e:  # a malformed pickle can fail in any of pickle's, numpy's or our ways
         raise ValueError(f"{path}: not a readable VecNormalize file ({e})") from None
     fields = getattr(loaded, "__dict__", {})
     missing = [f for f in ("obs_rms", "clip_obs", "epsilon") if f not in fields]
