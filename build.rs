@@ -1,4 +1,4 @@
-//! Compiles proto/prac/v1/prac.proto; protoc comes from `protoc-bin-vendored` unless PROTOC is set,
+//! Compiles proto/prac/v1/prac.proto and the dm_env_rpc protocol (proto/dm_env_rpc); protoc comes from `protoc-bin-vendored` unless PROTOC is set,
 //! because a fresh machine has no protoc.
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     if std::env::var_os("PROTOC").is_none() {
@@ -9,6 +9,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     tonic_prost_build::configure()
         .file_descriptor_set_path(out_dir.join("prac_descriptor.bin"))
         .compile_protos(&["proto/prac/v1/prac.proto"], &["proto"])?;
-    println!("cargo:rerun-if-changed=proto/prac/v1/prac.proto");
+    tonic_prost_build::configure()
+        .compile_protos(&["proto/dm_env_rpc/v1/dm_env_rpc.proto"], &["proto"])?;
+    println!("cargo:rerun-if-changed=proto");
     Ok(())
 }

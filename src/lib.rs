@@ -8,6 +8,7 @@
 //! - [`plan`]: Replan (Algorithm 2), shared by serving and training.
 //! - [`serve`]: the gRPC daemon.
 //! - [`domains`]: the environments (task interface) for training and the simulator client.
+//! - [`env_rpc`]: environments over DeepMind's dm_env_rpc protocol (training on any served env).
 //! - [`train`]: SAC + dynamics model training (Algorithm 1) with burn.
 //! - [`render`]: pictures of domains and plans, and charts (plotters).
 //! - [`client`]: connecting, waiting for a server's policies, a local server, resuming sessions.
@@ -20,6 +21,7 @@ pub mod bundle;
 pub mod cli;
 pub mod client;
 pub mod domains;
+pub mod env_rpc;
 pub mod manifest;
 pub mod nn;
 pub mod plan;

@@ -5,6 +5,8 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::Args;
 
+use crate::domains::Env;
+use crate::env_rpc::RemoteEnv;
 use crate::train::fit::{FitOptions, Transitions, fit_model};
 use crate::train::options::TrainOptions;
 use crate::train::run::Trainer;
@@ -13,8 +15,16 @@ use crate::train::sac::SacConfig;
 #[derive(Args, Debug)]
 pub struct TrainArgs {
     /// Domain to train on (see `prac domains`).
-    #[arg(long)]
-    pub domain: String,
+    #[arg(
+        long,
+        required_unless_present = "env_server",
+        conflicts_with = "env_server"
+    )]
+    pub domain: Option<String>,
+    /// Train on the environment a dm_env_rpc server offers at ADDR (`HOST:PORT`), e.g.
+    /// `python -m prac_client.env_server --env Pendulum-v1`; the bundle's domain is its name.
+    #[arg(long, value_name = "ADDR")]
+    pub env_server: Option<String>,
     /// Environment steps in all (a resumed run counts its earlier steps).
     #[arg(long, default_value_t = TrainOptions::DEFAULT_STEPS)]
     pub steps: u64,
@@ -102,7 +112,20 @@ fn apply_overrides(config: &mut SacConfig, a: &TrainArgs) {
 }
 
 pub fn train(args: TrainArgs) -> anyhow::Result<()> {
-    let mut options = TrainOptions::new(&args.domain, &args.out);
+    let served = match &args.env_server {
+        // Two worlds: one to train in, one to evaluate in.
+        Some(addr) => Some((
+            RemoteEnv::connect(addr, args.seed)?,
+            RemoteEnv::connect(addr, args.seed.wrapping_add(1))?,
+        )),
+        None => None,
+    };
+    let domain = match (&served, &args.domain) {
+        (Some((env, _)), _) => env.spec().name.to_string(),
+        (None, Some(domain)) => domain.clone(),
+        (None, None) => anyhow::bail!("give --domain or --env-server"),
+    };
+    let mut options = TrainOptions::new(&domain, &args.out);
     options.steps = args.steps;
     options.seed = args.seed;
     options.epsilon_coef = args.epsilon_coef;
@@ -126,7 +149,12 @@ pub fn train(args: TrainArgs) -> anyhow::Result<()> {
     options.value_episodes = args.value_episodes;
     options.progress = !args.quiet;
     apply_overrides(&mut options.sac, &args);
-    let mut trainer = Trainer::new(options, args.resume)?;
+    let mut trainer = match served {
+        Some((env, eval_env)) => {
+            Trainer::with_envs(options, args.resume, Box::new(env), Box::new(eval_env))?
+        }
+        None => Trainer::new(options, args.resume)?,
+    };
     if args.resume {
         eprintln!(
             "resuming at step {} (episode {})",

@@ -91,6 +91,9 @@ pub enum EnvError {
         index: usize,
         value: f32,
     },
+    /// An environment served over dm_env_rpc failed or refused (the message names the server).
+    #[error("{0}")]
+    Remote(String),
     #[error("observation buffer has {got} values; {domain} writes {expected}")]
     ObservationLength {
         domain: &'static str,
@@ -156,7 +159,7 @@ pub fn clip_action(spec: &EnvSpec, action: &[f32], clipped: &mut [f32]) -> Resul
     Ok(())
 }
 
-fn check_obs_len(spec: &EnvSpec, obs: &[f32]) -> Result<(), EnvError> {
+pub(crate) fn check_obs_len(spec: &EnvSpec, obs: &[f32]) -> Result<(), EnvError> {
     if obs.len() == spec.obs_dim {
         Ok(())
     } else {

@@ -30,6 +30,9 @@ pub struct Saved {
 struct StateFile {
     options: TrainOptions,
     progress: Progress,
+    /// Observation and action sizes (absent in checkpoints written before they were recorded).
+    #[serde(default)]
+    dims: Option<(usize, usize)>,
     model_stats: ModelStats,
 }
 
@@ -111,6 +114,7 @@ pub fn save(
     let state = StateFile {
         options: saved.options.clone(),
         progress: saved.progress.clone(),
+        dims: Some((sac.obs_dim, sac.act_dim)),
         model_stats: model.stats.clone(),
     };
     if let Some(buffer) = replay {
@@ -138,6 +142,16 @@ pub fn load(dir: &Path, sac: &mut Sac, model: &mut ModelTrainer) -> anyhow::Resu
     let state_path = dir.join(STATE_FILE);
     let state: StateFile = serde_json::from_slice(&std::fs::read(&state_path)?)
         .with_context(|| format!("reading {}", state_path.display()))?;
+    if let Some((obs, act)) = state.dims
+        && (obs, act) != (sac.obs_dim, sac.act_dim)
+    {
+        let (want_obs, want_act) = (sac.obs_dim, sac.act_dim);
+        anyhow::bail!(
+            "checkpoint {} was trained on {obs} observation and {act} action values; this \
+             environment has {want_obs} and {want_act}",
+            dir.display()
+        );
+    }
     let file = |name: &str| dir.join(name);
     let p = file("actor.bpk");
     sac.actor = sac

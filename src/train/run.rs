@@ -164,14 +164,32 @@ fn truncate_csv(path: &Path, step: u64) -> anyhow::Result<()> {
 impl Trainer {
     /// A fresh run, or the run in `checkpoint_dir` when `resume` is set and a checkpoint exists.
     pub fn new(options: TrainOptions, resume: bool) -> anyhow::Result<Trainer> {
-        let Some(env) = domains::make(&options.domain) else {
+        let (Some(env), Some(eval_env)) = (
+            domains::make(&options.domain),
+            domains::make(&options.domain),
+        ) else {
             bail!(
                 "unknown domain '{}'; known: {}",
                 options.domain,
                 domains::DOMAINS.join(", ")
             );
         };
+        Trainer::with_envs(options, resume, env, eval_env)
+    }
+
+    /// As [`Trainer::new`] on given environments (e.g. served over dm_env_rpc): `env` for
+    /// training, `eval_env` (the same task) for evaluations. `options.domain` names the task in
+    /// the bundle and the checkpoint.
+    pub fn with_envs(
+        options: TrainOptions,
+        resume: bool,
+        env: Box<dyn Env>,
+        eval_env: Box<dyn Env>,
+    ) -> anyhow::Result<Trainer> {
         options.validate()?;
+        if eval_env.spec() != env.spec() {
+            bail!("the evaluation environment differs from the training one");
+        }
         let spec = env.spec().clone();
         let (od, ad) = (spec.obs_dim, spec.act_dim);
         let mut init_rng = ChaCha8Rng::seed_from_u64(options.seed);
@@ -244,7 +262,7 @@ impl Trainer {
         Ok(Trainer {
             buffer: buffer.unwrap_or_else(|| ReplayBuffer::new(od, ad, options.sac.buffer_size)),
             restored_transitions,
-            eval_env: domains::make(&options.domain).expect("the domain exists"),
+            eval_env,
             env,
             spec,
             sac,
