@@ -13,7 +13,7 @@
 mod remote;
 mod tensor;
 
-pub use remote::{RemoteEnv, RemoteSpecs};
+pub use remote::RemoteEnv;
 
 /// Generated from proto/dm_env_rpc/v1/dm_env_rpc.proto and the google.rpc.Status it imports.
 #[allow(unreachable_pub, clippy::all)]

@@ -21,24 +21,31 @@ const ANSWER_PATIENCE: Duration = Duration::from_secs(60);
 /// Observations larger than gRPC's default 4 MB are fine; prac's networks set the real limit.
 const MAX_MESSAGE_BYTES: usize = 64 << 20;
 
-/// The uids and sizes prac uses from a world's specs.
+/// The uids (with names and sizes) prac uses from a world's specs.
 #[derive(Clone, Debug)]
-pub struct RemoteSpecs {
-    pub observation: (u64, String, usize),
-    pub reward: u64,
-    pub action: (u64, String, usize),
-    pub action_is_double: bool,
-    pub obs_low: Vec<f32>,
-    pub obs_high: Vec<f32>,
-    pub action_low: Vec<f32>,
-    pub action_high: Vec<f32>,
-    pub env_id: Option<u64>,
-    pub max_episode_steps: Option<u64>,
+pub(crate) struct RemoteSpecs {
+    observation: (u64, String, usize),
+    reward: u64,
+    action: (u64, String, usize),
+    action_is_double: bool,
+    env_id: Option<u64>,
+    max_episode_steps: Option<u64>,
+}
+
+/// The observation and action bounds of a world's specs, as the [`EnvSpec`] takes them.
+#[derive(Clone, Debug)]
+pub(crate) struct Bounds {
+    obs_low: Vec<f32>,
+    obs_high: Vec<f32>,
+    action_low: Vec<f32>,
+    action_high: Vec<f32>,
 }
 
 impl RemoteSpecs {
     /// Reads the specs a world answered JoinWorld with, refusing what prac cannot train on.
-    pub fn read(specs: &pb::ActionObservationSpecs) -> Result<RemoteSpecs, String> {
+    pub(crate) fn read(
+        specs: &pb::ActionObservationSpecs,
+    ) -> Result<(RemoteSpecs, Bounds), String> {
         let names = |m: &HashMap<u64, pb::TensorSpec>| {
             let mut n: Vec<String> = m.values().map(|s| s.name.clone()).collect();
             n.sort();
@@ -137,18 +144,21 @@ impl RemoteSpecs {
                 names(&specs.observations)
             ));
         };
-        Ok(RemoteSpecs {
+        let bounds = Bounds {
             obs_low: obs_bound(observation.1.min.as_ref(), f32::NEG_INFINITY)?,
             obs_high: obs_bound(observation.1.max.as_ref(), f32::INFINITY)?,
+            action_low: low.iter().map(|&x| x as f32).collect(),
+            action_high: high.iter().map(|&x| x as f32).collect(),
+        };
+        let specs = RemoteSpecs {
             observation: (observation.0, observation.1.name.clone(), obs_dim),
             reward,
             action: (action_uid, action.name.clone(), act_dim),
             action_is_double,
-            action_low: low.iter().map(|&x| x as f32).collect(),
-            action_high: high.iter().map(|&x| x as f32).collect(),
             env_id: find("env_id").map(|(uid, _)| uid),
             max_episode_steps: find("max_episode_steps").map(|(uid, _)| uid),
-        })
+        };
+        Ok((specs, bounds))
     }
 }
 
@@ -324,7 +334,7 @@ impl RemoteEnv {
             Response::JoinWorld(joined) => joined.specs.unwrap_or_default(),
             _ => bail!("{addr} answered JoinWorld with something else"),
         };
-        let specs = RemoteSpecs::read(&specs)
+        let (specs, bounds) = RemoteSpecs::read(&specs)
             .map_err(|e| anyhow::anyhow!("the environment at {addr} (world {world}): {e}"))?;
         // The first step starts an episode; it also carries the environment's name and limit.
         let requested: Vec<u64> = specs
@@ -353,10 +363,10 @@ impl RemoteEnv {
             name: Box::leak(env_id.into_boxed_str()),
             obs_dim: specs.observation.2,
             act_dim: specs.action.2,
-            obs_low: specs.obs_low.clone(),
-            obs_high: specs.obs_high.clone(),
-            action_low: specs.action_low.clone(),
-            action_high: specs.action_high.clone(),
+            obs_low: bounds.obs_low,
+            obs_high: bounds.obs_high,
+            action_low: bounds.action_low,
+            action_high: bounds.action_high,
             episode_len,
             control_period: 0.0,
             engine: "dm_env_rpc",
@@ -369,11 +379,6 @@ impl RemoteEnv {
             specs,
             spec,
         })
-    }
-
-    /// The server's address.
-    pub fn addr(&self) -> &str {
-        &self.link.addr
     }
 
     fn observe(&self, step: &pb::StepResponse, obs: &mut [f32]) -> Result<(), EnvError> {
@@ -533,14 +538,14 @@ mod tests {
     #[test]
     fn a_bounded_continuous_action_and_a_reward_are_read() {
         let action = spec("action", pb::DataType::Float, vec![1], Some((-2.0, 2.0)));
-        let read = RemoteSpecs::read(&pendulum_like(action)).unwrap();
+        let (read, bounds) = RemoteSpecs::read(&pendulum_like(action)).unwrap();
         assert_eq!(read.observation.2, 3);
         assert_eq!((read.action.2, read.reward, read.env_id), (1, 2, Some(4)));
         assert_eq!(
-            (read.action_low.clone(), read.action_high.clone()),
+            (bounds.action_low, bounds.action_high),
             (vec![-2.0], vec![2.0])
         );
-        assert!(read.obs_low.iter().all(|v| *v == f32::NEG_INFINITY));
+        assert!(bounds.obs_low.iter().all(|v| *v == f32::NEG_INFINITY));
     }
 
     #[test]

@@ -119,6 +119,12 @@ class World:
         self.action_space = action_space
         self.max_episode_steps = self.env.spec.max_episode_steps if self.env.spec else None
 
+    def restart(self, seed: int | None) -> None:
+        """Ends the episode: the next step starts one (seeded with `seed` where given)."""
+        if seed is not None:
+            self.next_seed = seed
+        self.running = False
+
     def specs(self) -> pb.ActionObservationSpecs:
         observation_space = self.env.observation_space
         assert isinstance(observation_space, gym.spaces.Box)
@@ -290,9 +296,7 @@ class EnvironmentServicer(pb_grpc.EnvironmentServicer):  # type: ignore[misc]
                         f"world '{request.join_world.world_name}' has an agent already (one per world)",
                     )
                 world.joined = True
-            if seed is not None:
-                world.next_seed = seed
-            world.running = False
+            world.restart(seed)
             response.join_world.specs.CopyFrom(world.specs())
             return world
         if kind == "destroy_world":
@@ -307,9 +311,7 @@ class EnvironmentServicer(pb_grpc.EnvironmentServicer):  # type: ignore[misc]
         if kind == "reset_world":
             with self.lock:
                 world = self._world(request.reset_world.world_name)
-            seed = _seed(request.reset_world.settings)
-            world.next_seed = seed if seed is not None else world.next_seed
-            world.running = False
+            world.restart(_seed(request.reset_world.settings))
             response.reset_world.SetInParent()
             return joined
         if kind == "extension":
@@ -320,10 +322,7 @@ class EnvironmentServicer(pb_grpc.EnvironmentServicer):  # type: ignore[misc]
             response.step.CopyFrom(joined.step(request.step))
             return joined
         if kind == "reset":
-            seed = _seed(request.reset.settings)
-            if seed is not None:
-                joined.next_seed = seed
-            joined.running = False
+            joined.restart(_seed(request.reset.settings))
             response.reset.specs.CopyFrom(joined.specs())
             return joined
         if kind == "leave_world":
