@@ -9,10 +9,15 @@
 //! - [`serve`]: the gRPC daemon.
 //! - [`domains`]: the environments (task interface) for training and the simulator client.
 //! - [`env_rpc`]: environments over DeepMind's dm_env_rpc protocol (training on any served env).
-//! - [`train`]: SAC + dynamics model training (Algorithm 1) with burn.
-//! - [`render`]: pictures of domains and plans, and charts (plotters).
+//! - [`eval`]: rollouts: returns, the value scale and the dynamics model's error.
+//! - [`train`]: SAC + dynamics model training (Algorithm 1) with burn (feature `train`).
+//! - [`render`]: pictures of domains and plans, and charts with plotters (feature `render`).
 //! - [`client`]: connecting, waiting for a server's policies, a local server, resuming sessions.
-//! - [`cli`]: `prac inspect` and `prac bench-replan`.
+//! - [`cli`]: the `prac` subcommands other than `serve`.
+//!
+//! The features `train` and `render` (both default) carry the heavy dependencies, burn and
+//! plotters; a client that only talks to the server or plays the domains (prac-bench) goes
+//! without them.
 
 // Items no caller outside the crate can reach are marked so: visibility is the boundary.
 #![warn(unreachable_pub)]
@@ -22,14 +27,17 @@ pub mod cli;
 pub mod client;
 pub mod domains;
 pub mod env_rpc;
+pub mod eval;
 pub mod manifest;
 pub mod nn;
 pub mod plan;
 pub mod policy;
+#[cfg(feature = "render")]
 pub mod render;
 pub mod serve;
 #[doc(hidden)]
 pub mod testing;
+#[cfg(feature = "train")]
 pub mod train;
 
 pub mod proto {

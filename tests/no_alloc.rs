@@ -1,43 +1,61 @@
-//! The per-step path (Session::step: Replan and the networks) does not allocate after a session's
-//! first step. Counted with a global allocator, in its own test binary, on the test's own thread
-//! only (the test harness's thread may allocate meanwhile, e.g. on a loaded machine).
+//! The per-step paths do not allocate after the first step: a session's step (Replan and the
+//! networks) and every domain's `Env::step` outside its calls into the physics engine (rapier
+//! 0.36 allocates inside its step and its bookkeeping of modified bodies; those allocations are
+//! counted apart and printed). Counted with a global
+//! allocator, in its own test binary, on the test's own thread only (the test harness's thread
+//! may allocate meanwhile, e.g. on a loaded machine).
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicUsize, Ordering};
 
 use prac::plan::{ReplanConfig, ReplanScratch};
 use prac::policy::Evaluator;
 use prac::serve::{Arrival, Session, SessionSettings};
 use prac::testing::hopper_sized_manifest;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 
 struct Counting;
 
 thread_local! {
-    // Const-initialised without a destructor: reading it never allocates.
+    // Const-initialised without destructors: using them never allocates. Per thread, as the
+    // tests run side by side.
     static COUNTING: Cell<bool> = const { Cell::new(false) };
+    static ALLOCATIONS: Cell<usize> = const { Cell::new(0) };
+    static ENGINE_ALLOCATIONS: Cell<usize> = const { Cell::new(0) };
 }
-static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
 
 fn counting() -> bool {
     COUNTING.with(Cell::get)
 }
 
+fn count() {
+    if counting() {
+        let counter = if prac::testing::in_physics_engine() {
+            &ENGINE_ALLOCATIONS
+        } else {
+            &ALLOCATIONS
+        };
+        counter.with(|n| n.set(n.get() + 1));
+    }
+}
+
+/// This thread's count since the last call.
+fn take(counter: &'static std::thread::LocalKey<Cell<usize>>) -> usize {
+    counter.with(|n| n.replace(0))
+}
+
 unsafe impl GlobalAlloc for Counting {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        if counting() {
-            ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
-        }
+        count();
         unsafe { System.alloc(layout) }
     }
     unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
         unsafe { System.dealloc(ptr, layout) }
     }
     unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        if counting() {
-            ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
-        }
+        count();
         unsafe { System.realloc(ptr, layout, new_size) }
     }
 }
@@ -94,10 +112,55 @@ fn steps_after_the_first_do_not_allocate() {
         }
         COUNTING.with(|c| c.set(false));
         assert_eq!(
-            ALLOCATIONS.swap(0, Ordering::SeqCst),
+            take(&ALLOCATIONS),
             0,
             "eps {epsilon} sampled {sampled} normalising {}",
             manifest.obs_normalization.is_some()
+        );
+    }
+}
+
+#[test]
+fn domain_steps_allocate_nothing_outside_the_physics_engine() {
+    const STEPS: usize = 300;
+    for &name in prac::domains::DOMAINS {
+        let mut env = prac::domains::make(name).unwrap();
+        let spec = env.spec().clone();
+        let mut obs = vec![0.0; spec.obs_dim];
+        let mut action = vec![0.0; spec.act_dim];
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut episode = 0;
+        env.reset(episode, &mut obs).unwrap();
+        // The first step may size buffers; every later one must reuse them.
+        env.step(&action, &mut obs).unwrap();
+        let mut counted = 0;
+        while counted < STEPS {
+            for (a, (lo, hi)) in action
+                .iter_mut()
+                .zip(spec.action_low.iter().zip(&spec.action_high))
+            {
+                *a = rng.random_range(*lo..=*hi);
+            }
+            COUNTING.with(|c| c.set(true));
+            let transition = env.step(&action, &mut obs);
+            COUNTING.with(|c| c.set(false));
+            counted += 1;
+            let transition = transition.unwrap();
+            if transition.terminated || transition.truncated {
+                episode += 1;
+                env.reset(episode, &mut obs).unwrap();
+                env.step(&action, &mut obs).unwrap();
+            }
+        }
+        let engine = take(&ENGINE_ALLOCATIONS);
+        eprintln!(
+            "{name}: {:.1} allocations per step inside rapier (its step, its bookkeeping)",
+            engine as f64 / STEPS as f64
+        );
+        assert_eq!(
+            take(&ALLOCATIONS),
+            0,
+            "{name}: Env::step allocated outside its calls into the physics engine over {STEPS} steps"
         );
     }
 }

@@ -11,7 +11,7 @@ use std::path::Path;
 use anyhow::Context;
 
 use crate::domains::{DOMAINS, Env, EpisodeTotals, Planar, PlanarState, make};
-use crate::train::eval::mean_std;
+use crate::eval::mean_std;
 
 pub fn table() -> String {
     let mut out = format!(

@@ -8,7 +8,7 @@ use serde::Serialize;
 
 use crate::bundle;
 use crate::domains;
-use crate::train::eval::{Episode, mean_std, policy_episodes, random_episodes};
+use crate::eval::{Episode, mean_std, policy_episodes, random_episodes};
 
 /// Episodes `seed`, `seed + 1`, ... of one way of acting.
 #[derive(Debug, Serialize)]

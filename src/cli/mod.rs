@@ -4,7 +4,9 @@ pub mod bench;
 pub mod domains;
 pub mod evaluate;
 pub mod inspect;
+#[cfg(feature = "render")]
 pub mod render;
+#[cfg(feature = "train")]
 pub mod train;
 
 /// Two finite numbers "A,B" from a command-line value (`--value-scale`, prac-sim's

@@ -257,7 +257,11 @@ impl Lander {
             let oy = -tip.y * (4.0 / SCALE + 2.0 * dispersion[0]) - side.y * dispersion[1];
             let at = Vector::new(pos.x + ox, pos.y + oy);
             let impulse = Vector::new(-ox, -oy) * MAIN_ENGINE_POWER * main_power;
-            self.world.bodies[self.hull].add_force_at_point(impulse * FPS, at, true);
+            super::body_mut(&mut self.world.bodies, self.hull).add_force_at_point(
+                impulse * FPS,
+                at,
+                true,
+            );
         }
         let mut side_power = 0.0;
         if action[1].abs() > 0.5 {
@@ -272,7 +276,11 @@ impl Lander {
                 pos.y + oy + tip.y * SIDE_ENGINE_HEIGHT / SCALE,
             );
             let impulse = Vector::new(-ox, -oy) * SIDE_ENGINE_POWER * side_power;
-            self.world.bodies[self.hull].add_force_at_point(impulse * FPS, at, true);
+            super::body_mut(&mut self.world.bodies, self.hull).add_force_at_point(
+                impulse * FPS,
+                at,
+                true,
+            );
         }
         (main_power, side_power)
     }
@@ -281,8 +289,8 @@ impl Lander {
     /// whether the episode ended.
     fn advance(&mut self, action: [f32; 2], obs: &mut [f32]) -> (f64, bool) {
         let (main_power, side_power) = self.fire(action);
-        self.world.step();
-        let hull = &mut self.world.bodies[self.hull];
+        super::engine(|| self.world.step());
+        let hull = super::body_mut(&mut self.world.bodies, self.hull);
         hull.reset_forces(false);
         hull.reset_torques(false);
         if self.touching(self.hull_collider) {
@@ -301,7 +309,7 @@ impl Lander {
             f32::from(u8::from(self.touching(self.legs[1].1))),
         ];
         obs.copy_from_slice(&state);
-        let s: Vec<f64> = state.iter().map(|&v| f64::from(v)).collect();
+        let s = state.map(f64::from);
         let shaping = -100.0 * (s[0] * s[0] + s[1] * s[1]).sqrt()
             - 100.0 * (s[2] * s[2] + s[3] * s[3]).sqrt()
             - 100.0 * s[4].abs()

@@ -103,7 +103,8 @@ pub enum EnvError {
 }
 
 /// An episodic control task. `reset` and `step` write the observation into `obs` (obs_dim
-/// values), so stepping allocates nothing. The same seed and actions give bit-identical
+/// values), so a built-in domain's step allocates nothing of its own (the physics engine's step
+/// inside it does; see `engine`). The same seed and actions give bit-identical
 /// observations.
 pub trait Env: Send {
     fn spec(&self) -> &EnvSpec;
@@ -157,6 +158,40 @@ pub fn clip_action(spec: &EnvSpec, action: &[f32], clipped: &mut [f32]) -> Resul
         clipped[i] = action[i].clamp(spec.action_low[i], spec.action_high[i]);
     }
     Ok(())
+}
+
+thread_local! {
+    // Const-initialised without a destructor: reading it never allocates.
+    static IN_ENGINE: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Runs a call into the physics engine that allocates inside rapier 0.36: its step (multibody
+/// mass matrices and their LU factors, solver scratch vectors) and the first mutable access to
+/// a body after a step (rapier records modified bodies in a list its step takes and drops).
+/// Everything of ours around these calls must not allocate; the allocation audit
+/// (tests/no_alloc.rs) tells the two apart with [`in_engine`].
+pub(crate) fn engine<R>(call: impl FnOnce() -> R) -> R {
+    IN_ENGINE.with(|flag| flag.set(true));
+    let result = call();
+    IN_ENGINE.with(|flag| flag.set(false));
+    result
+}
+
+/// A body to push forces into: `&mut bodies[handle]` as a call into the engine, whose
+/// bookkeeping of modified bodies allocates (see [`engine`]).
+pub(crate) fn body_mut<S, H>(bodies: &mut S, handle: H) -> &mut S::Output
+where
+    S: std::ops::IndexMut<H> + ?Sized,
+{
+    engine(move || {
+        let bodies = bodies;
+        &mut bodies[handle]
+    })
+}
+
+/// Whether this thread is inside a call into the physics engine (see [`engine`]).
+pub(crate) fn in_engine() -> bool {
+    IN_ENGINE.with(std::cell::Cell::get)
 }
 
 pub(crate) fn check_obs_len(spec: &EnvSpec, obs: &[f32]) -> Result<(), EnvError> {

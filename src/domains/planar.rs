@@ -619,7 +619,7 @@ impl Planar {
     /// and Bullet's default multibody drag on every link.
     fn apply_forces(&mut self, action: &[f32]) {
         for &body in &self.bodies {
-            let body = &mut self.world.bodies[body];
+            let body = super::body_mut(&mut self.world.bodies, body);
             body.reset_forces(false);
             body.reset_torques(false);
             let (v, w) = (body.linvel(), body.angvel());
@@ -631,8 +631,9 @@ impl Planar {
         }
         for (joint, &u) in self.robot.joints.iter().zip(action) {
             let tau = joint.axis * joint.torque * u;
-            self.world.bodies[self.bodies[joint.child]].add_torque(tau, true);
-            self.world.bodies[self.bodies[joint.parent]].add_torque(-tau, true);
+            super::body_mut(&mut self.world.bodies, self.bodies[joint.child]).add_torque(tau, true);
+            super::body_mut(&mut self.world.bodies, self.bodies[joint.parent])
+                .add_torque(-tau, true);
         }
     }
 
@@ -741,7 +742,7 @@ impl Env for Planar {
         let a = self.episode.begin_step(&self.spec, action)?;
         for _ in 0..SUBSTEPS {
             self.apply_forces(&a);
-            self.world.step();
+            super::engine(|| self.world.step());
         }
         let (z, pitch) = self.observe(obs);
         let (alive, ends) = self.alive_bonus(z, pitch, &obs[MORE + self.joint_state.len()..]);
@@ -795,7 +796,7 @@ impl Planar {
         let zero = vec![0.0; self.spec.act_dim];
         for _ in 0..(seconds / CONTROL_PERIOD) as usize * SUBSTEPS {
             self.apply_forces(&zero);
-            self.world.step();
+            super::engine(|| self.world.step());
         }
         self.torso().linvel().y
     }

@@ -647,7 +647,7 @@ impl Spatial {
     /// and Bullet's default multibody drag on every link (unless floating freely for a test).
     fn apply_forces(&mut self, action: &[f32]) {
         for &body in &self.bodies {
-            let body = &mut self.world.bodies[body];
+            let body = super::body_mut(&mut self.world.bodies, body);
             body.reset_forces(false);
             body.reset_torques(false);
             if self.drag {
@@ -666,8 +666,8 @@ impl Spatial {
             let child = self.bodies[k];
             let world_axis = *self.world.bodies[child].rotation() * link.axis;
             let tau = world_axis * (link.torque * action[k - 1]);
-            self.world.bodies[child].add_torque(tau, true);
-            self.world.bodies[parent].add_torque(-tau, true);
+            super::body_mut(&mut self.world.bodies, child).add_torque(tau, true);
+            super::body_mut(&mut self.world.bodies, parent).add_torque(-tau, true);
         }
     }
 
@@ -828,7 +828,7 @@ impl Env for Spatial {
         let a = self.episode.begin_step(&self.spec, action)?;
         for _ in 0..self.robot.substeps {
             self.apply_forces(&a);
-            self.world.step();
+            super::engine(|| self.world.step());
         }
         let (z, _pitch) = self.observe(obs);
         let alive = if z > self.robot.alive.min_z {
@@ -853,7 +853,7 @@ impl Spatial {
         let steps = (seconds / CONTROL_PERIOD) as usize * self.robot.substeps;
         for _ in 0..steps {
             self.apply_forces(&zero);
-            self.world.step();
+            super::engine(|| self.world.step());
         }
         self.torso().linvel().z
     }

@@ -10,10 +10,10 @@ use rand_chacha::ChaCha8Rng;
 use safetensors::SafeTensors;
 use serde::Serialize;
 
-use super::eval::{ModelError, Trajectory, model_errors, model_errors_by_action};
 use super::model::ModelTrainer;
 use super::sac::{SacConfig, train_device};
 use crate::bundle::ModelSpec;
+use crate::eval::{ModelError, Trajectory, model_errors, model_errors_by_action};
 use crate::nn::Activation;
 use crate::policy::Policy;
 

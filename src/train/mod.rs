@@ -8,14 +8,12 @@
 //! - [`buffer`]: the replay buffer.
 //! - [`run`]: the training loop, curve and evaluations.
 //! - [`checkpoint`]: checkpoints and resume.
-//! - [`eval`]: rollouts, the value scale and model error.
 //! - [`fit`]: `prac fit-model`.
 //! - [`bench`]: `prac bench-train`.
 
 pub mod bench;
 pub mod buffer;
 pub mod checkpoint;
-pub mod eval;
 pub mod fit;
 pub mod model;
 pub mod nets;

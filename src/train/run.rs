@@ -16,7 +16,6 @@ use serde::Serialize;
 
 use super::buffer::ReplayBuffer;
 use super::checkpoint;
-use super::eval::{self, ModelError, Trajectory};
 use super::model::ModelTrainer;
 use super::options::{Progress, TrainOptions};
 use super::sac::{Batch, Sac, SacConfig, SacLosses};
@@ -25,6 +24,7 @@ use crate::bundle::{
     QAggregation, ValueScale,
 };
 use crate::domains::{self, Env, EnvSpec, EpisodeTotals};
+use crate::eval::{self, ModelError, Trajectory};
 use crate::nn::Activation;
 use crate::plan::{Growth, Networks, Planner, ReplanConfig};
 use crate::policy::{Evaluator, Policy};

@@ -6,8 +6,8 @@
 use std::path::Path;
 
 use anyhow::{Context, bail};
+use prac::eval::mean_std;
 use prac::render::chart::{Panel, Series, line_panels};
-use prac::train::eval::mean_std;
 
 pub const WINDOW: usize = 20;
 

@@ -272,7 +272,7 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
                 println!("{}", serde_json::to_string_pretty(&results)?);
             } else {
                 let mean = |f: fn(&play::EpisodeResult) -> f64| {
-                    prac::train::eval::mean_std(&results.iter().map(f).collect::<Vec<_>>())
+                    prac::eval::mean_std(&results.iter().map(f).collect::<Vec<_>>())
                 };
                 let (r, rs) = mean(|e| e.ret);
                 let (f, fs) = mean(|e| e.forecast);
@@ -284,7 +284,7 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
                 );
                 let distances: Option<Vec<f64>> = results.iter().map(|e| e.distance).collect();
                 if let Some(d) = distances {
-                    let (d, ds) = prac::train::eval::mean_std(&d);
+                    let (d, ds) = prac::eval::mean_std(&d);
                     println!("moved forward {d:.2} +- {ds:.2} m");
                 }
             }

@@ -4,9 +4,9 @@
 use std::fmt::Write as _;
 use std::path::Path;
 
+use prac::eval::{mean_std, random_episodes};
 use prac::proto::PolicyInfo;
 use prac::render::chart::{Panel, Series, line_panels};
-use prac::train::eval::{mean_std, random_episodes};
 use serde::Serialize;
 
 use crate::play::{Client, EpisodeResult, PlanShape, Tol, play_episode};

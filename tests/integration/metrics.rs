@@ -2,7 +2,7 @@
 //! length, where steps were replanned and errors by status code, read from a real server's
 //! /metrics.
 
-mod common;
+use crate::common;
 
 use std::io::{Read, Write};
 

@@ -3,7 +3,7 @@
 //! step; the client resumes on the other replica with the committed plan. Needs nginx on PATH or
 //! in /usr/sbin (`.ci/run` installs it); without it the test says it was skipped.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};

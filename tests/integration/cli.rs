@@ -1,7 +1,7 @@
 //! `prac inspect` on bundles written by test code, `prac evaluate` on a shipped one,
 //! `prac bench-replan --bundle` and `prac play-from-states` on PyBullet's states.
 
-mod common;
+use crate::common;
 
 use std::process::Command;
 

@@ -2,7 +2,7 @@
 //! a session belongs to the token that opened it (another token gets PERMISSION_DENIED), and
 //! health stays open for probes.
 
-mod common;
+use crate::common;
 
 use common::{OBS, Server, bundle_dir};
 use prac::proto;

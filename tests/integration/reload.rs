@@ -1,7 +1,7 @@
 //! Hot reload on SIGHUP: new sessions get the new version of a bundle, open sessions keep theirs,
 //! a new bundle file is picked up, and a broken file keeps the old version.
 
-mod common;
+use crate::common;
 
 use std::time::{Duration, Instant};
 

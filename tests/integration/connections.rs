@@ -3,7 +3,7 @@
 //! never reads stalls alone, and the TLS port and metrics endpoint shrug off slow, plaintext,
 //! oversized and numerous clients.
 
-mod common;
+use crate::common;
 
 use std::io::{Read, Write};
 use std::net::TcpStream;
@@ -289,7 +289,7 @@ fn rss_kib(pid: u32) -> u64 {
 }
 
 /// Not a test: the figures of docs/operations.md ("Limits"). Run with
-/// `cargo test --release --test connections -- --ignored --nocapture`.
+/// `cargo test --release --test integration connections:: -- --ignored --nocapture`.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 #[ignore = "a measurement; prints figures"]
 async fn measure_connection_stream_and_tls_costs() {

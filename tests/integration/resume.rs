@@ -2,7 +2,7 @@
 //! one with the plan it last received, and the episode goes on with the committed actions, exactly
 //! as the old server would have continued it. Malformed resumed plans are refused.
 
-mod common;
+use crate::common;
 
 use common::{ACT, OBS, Server, bundle_dir};
 use prac::proto::{self, session_options::Tolerance};

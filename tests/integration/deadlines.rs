@@ -2,7 +2,7 @@
 //! is DEADLINE_EXCEEDED and changes nothing, so the steps a session served equal the steps its
 //! client was answered.
 
-mod common;
+use crate::common;
 
 use common::{Server, h2_connect, h2_unary, open_default_session};
 use prac::bundle;

@@ -1,6 +1,6 @@
-//! Integration tests: the real `prac serve` binary on an ephemeral port, driven by a tonic client.
+//! The real `prac serve` binary on an ephemeral port, driven by a tonic client.
 
-mod common;
+use crate::common;
 
 use std::time::Duration;
 

@@ -1,10 +1,10 @@
-//! The shipped bundles do their tasks (the criteria of docs/results.md), on seeds their training runs never
-//! evaluated on. A walker's forward distance comes from `Env::forward_position`.
+//! The shipped bundles do their tasks (the criteria of docs/results.md), on seeds their training
+//! runs never evaluated on. A walker's forward distance comes from `Env::forward_position`.
 
 use std::path::Path;
 use std::sync::Arc;
 
-use prac::train::eval::{Episode, mean_std, policy_episodes};
+use prac::eval::{Episode, mean_std, policy_episodes};
 
 fn play(domain: &str, episodes: usize) -> (Arc<prac::policy::Policy>, Vec<Episode>) {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("bundles/{domain}.safetensors"));

@@ -1,5 +1,4 @@
 //! Starts the real `prac serve` binary on an ephemeral port over bundles written by test code.
-#![allow(dead_code)]
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
@@ -13,8 +12,6 @@ use tonic_health::pb::HealthCheckRequest;
 use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::health_client::HealthClient;
 
-// Each test binary uses its own part of this module.
-#[allow(unused_imports)]
 pub use prac::testing::{TOY_ACT as ACT, TOY_OBS as OBS, toy_policy};
 
 /// A temporary bundle directory holding `toy.safetensors` (and whatever else a test adds).
@@ -71,10 +68,6 @@ impl Server {
             stderr_path,
             _stderr_dir: stderr_dir,
         }
-    }
-
-    pub fn url(&self) -> String {
-        format!("http://{}", self.addr)
     }
 
     pub async fn channel(&self) -> Channel {

@@ -1,6 +1,6 @@
 //! `prac train` as a process: a run killed with SIGKILL resumes from its checkpoint (networks,
-//! optimisers and replay buffer) and continues its step count and curve; training-with-PrAC commits to plans; `prac fit-model` fits a model
-//! from recorded transitions.
+//! optimisers and replay buffer) and continues its step count and curve; training-with-PrAC
+//! commits to plans; `prac fit-model` fits a model from recorded transitions.
 
 use std::path::Path;
 use std::process::{Command, Stdio};
