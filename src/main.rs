@@ -97,6 +97,20 @@ enum Command {
         #[arg(long, default_value_t = 640)]
         height: u32,
     },
+    /// Serve a built-in domain over DeepMind's dm_env_rpc protocol (each world one environment),
+    /// for `prac train --env-server` and Python's `prac_client.envs`. Prints `listening on ADDR`
+    /// once it serves.
+    EnvServe {
+        /// The domain (`prac domains` lists them).
+        #[arg(long)]
+        domain: String,
+        /// HOST:PORT (port 0 picks a free one).
+        #[arg(long, default_value = "127.0.0.1:50061", value_parser = prac::serve::socket_address)]
+        listen: std::net::SocketAddr,
+        /// Seed of each world's first episode unless its settings give one.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
     /// Train a policy with SAC and a dynamics model (Algorithm 1) and write a bundle.
     Train(Box<prac::cli::train::TrainArgs>),
     /// (Re)train a bundle's dynamics model from recorded transitions (obs, action, next_obs).
@@ -223,6 +237,15 @@ fn main() -> ExitCode {
             size: (width.clamp(64, 4096), height.clamp(64, 4096)),
         })
         .map(|n| println!("wrote {} ({n} planned states drawn)", out.display())),
+        Command::EnvServe {
+            domain,
+            listen,
+            seed,
+        } => tokio::runtime::Builder::new_multi_thread()
+            .enable_all()
+            .build()
+            .map_err(anyhow::Error::from)
+            .and_then(|runtime| runtime.block_on(prac::env_rpc::serve(&domain, listen, seed))),
         Command::Train(args) => prac::cli::train::train(*args),
         Command::FitModel(args) => prac::cli::train::fit(args),
         Command::BenchTrain {

@@ -1,6 +1,8 @@
 //! dm_env_rpc tensors to and from flat f32/f64 values.
 
-use super::wire::dm_env_rpc::v1::tensor::{DoubleArray, FloatArray, Int64Array, Payload};
+use super::wire::dm_env_rpc::v1::tensor::{
+    DoubleArray, FloatArray, Int64Array, Payload, StringArray,
+};
 use super::wire::dm_env_rpc::v1::tensor_spec::value::Payload as BoundPayload;
 use super::wire::dm_env_rpc::v1::{Tensor, tensor_spec};
 
@@ -19,6 +21,15 @@ pub(crate) fn doubles(values: &[f64], shape: Vec<i32>) -> Tensor {
             array: values.to_vec(),
         })),
         shape,
+    }
+}
+
+pub(crate) fn string(value: &str) -> Tensor {
+    Tensor {
+        payload: Some(Payload::Strings(StringArray {
+            array: vec![value.to_string()],
+        })),
+        shape: Vec::new(),
     }
 }
 

@@ -202,7 +202,7 @@ impl Default for ServeConfig {
 }
 
 /// An address to listen on: IP:PORT, [IPv6]:PORT, or HOST:PORT resolved now (its first address).
-fn socket_address(text: &str) -> Result<SocketAddr, String> {
+pub fn socket_address(text: &str) -> Result<SocketAddr, String> {
     use std::net::ToSocketAddrs;
     if let Ok(addr) = text.parse() {
         return Ok(addr);

@@ -23,7 +23,7 @@ use tokio_util::sync::CancellationToken;
 use tonic_health::ServingStatus;
 
 pub use arrival::Arrival;
-pub use config::{LogFormat, ServeArgs, ServeConfig};
+pub use config::{LogFormat, ServeArgs, ServeConfig, socket_address};
 use registry::Registry;
 use service::{PracService, ServerState};
 use session::Sessions;
