@@ -41,18 +41,28 @@ const MAX_EPISODE_STEPS: u64 = 5;
 /// An action this far past a bound (relative to the bound's range) is still taken, clipped:
 /// float32 rounding of a rescaled tanh lands just outside.
 const BOUND_TOLERANCE: f32 = 1e-6;
-/// gRPC status codes (google.rpc.Code).
-const INVALID_ARGUMENT: i32 = 3;
-const NOT_FOUND: i32 = 5;
-const FAILED_PRECONDITION: i32 = 9;
-const UNIMPLEMENTED: i32 = 12;
-const INTERNAL: i32 = 13;
+// google.rpc.Code's values are gRPC's status codes.
+const INVALID_ARGUMENT: i32 = tonic::Code::InvalidArgument as i32;
+const NOT_FOUND: i32 = tonic::Code::NotFound as i32;
+const FAILED_PRECONDITION: i32 = tonic::Code::FailedPrecondition as i32;
+const UNIMPLEMENTED: i32 = tonic::Code::Unimplemented as i32;
+const INTERNAL: i32 = tonic::Code::Internal as i32;
 
 /// A request the server refuses; nothing changed.
 struct Refusal(i32, String);
 
 fn refuse<T>(code: i32, message: impl Into<String>) -> Result<T, Refusal> {
     Err(Refusal(code, message.into()))
+}
+
+/// The world a connection joined; step, reset and leave_world need one.
+fn joined_world(joined: &Option<Arc<Mutex<World>>>) -> Result<&Mutex<World>, Refusal> {
+    joined.as_deref().ok_or_else(|| {
+        Refusal(
+            FAILED_PRECONDITION,
+            "step, reset and leave_world need a joined world: create and join one first".into(),
+        )
+    })
 }
 
 fn lock(world: &Mutex<World>) -> Result<MutexGuard<'_, World>, Refusal> {
@@ -401,31 +411,19 @@ impl DomainServer {
                 Ok(Response::ResetWorld(pb::ResetWorldResponse {}))
             }
             Request::Extension(_) => refuse(UNIMPLEMENTED, "this server has no extensions"),
-            other => {
-                let Some(world) = joined.as_ref() else {
-                    return refuse(
-                        FAILED_PRECONDITION,
-                        "step, reset and leave_world need a joined world: create and join one \
-                         first",
-                    );
-                };
-                match other {
-                    Request::Step(step) => lock(world)?.step(&step).map(Response::Step),
-                    Request::Reset(reset) => {
-                        let seed = seed_setting(&reset.settings)?;
-                        let mut w = lock(world)?;
-                        w.restart(seed);
-                        Ok(Response::Reset(pb::ResetResponse {
-                            specs: Some(w.specs()),
-                        }))
-                    }
-                    Request::LeaveWorld(_) => {
-                        lock(world)?.joined = false;
-                        *joined = None;
-                        Ok(Response::LeaveWorld(pb::LeaveWorldResponse {}))
-                    }
-                    _ => unreachable!("handled above"),
-                }
+            Request::Step(step) => lock(joined_world(joined)?)?.step(&step).map(Response::Step),
+            Request::Reset(reset) => {
+                let seed = seed_setting(&reset.settings)?;
+                let mut world = lock(joined_world(joined)?)?;
+                world.restart(seed);
+                Ok(Response::Reset(pb::ResetResponse {
+                    specs: Some(world.specs()),
+                }))
+            }
+            Request::LeaveWorld(_) => {
+                lock(joined_world(joined)?)?.joined = false;
+                *joined = None;
+                Ok(Response::LeaveWorld(pb::LeaveWorldResponse {}))
             }
         }
     }
