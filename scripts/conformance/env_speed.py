@@ -1,10 +1,11 @@
 """Env steps per second from Python, one process, random actions: prac's robots as gymnasium
-envs over dm_env_rpc (prac_client.envs, each with its own `prac env-serve`) against PyBullet
-3.2.7's own Python envs, and the pendulum against gymnasium's (the protocol's own cost). Prints
-a markdown table (docs/domains.md).
+envs over dm_env_rpc (prac_client.envs, each with its own `prac env-serve`), one env and a
+vector env of --num-envs in one world (`gymnasium.make_vec`), against PyBullet 3.2.7's own
+Python envs, and the pendulum against gymnasium's (the protocol's own cost). Prints a markdown
+table (docs/domains.md).
 
 Usage: python scripts/conformance/env_speed.py [--seconds 10] [--domains hopper,...]
-(run by scripts/conformance/speed in the conformance venv, PRAC_BIN set).
+[--num-envs 32] (run by scripts/conformance/speed in the conformance venv, PRAC_BIN set).
 """
 
 import argparse
@@ -77,22 +78,46 @@ def prac_rate(name, seconds, rng):
     return gymnasium_rate(PRAC[name], seconds, rng)
 
 
+def vector_rate(env_id, num_envs, seconds, rng):
+    """Env steps (num_envs per call) over `seconds`; the vector resets its envs itself."""
+    env = gymnasium.make_vec(env_id, num_envs=num_envs)
+    low, high = env.action_space.low, env.action_space.high
+    actions = rng.uniform(low, high, size=(64,) + low.shape).astype(np.float32)
+    env.reset(seed=0)
+    calls = 0
+    start = time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        env.step(actions[calls % len(actions)])
+        calls += 1
+    rate = calls * num_envs / (time.perf_counter() - start)
+    env.close()
+    return rate
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--domains", default=",".join(PRAC))
+    parser.add_argument("--num-envs", type=int, default=32)
     args = parser.parse_args()
     rng = np.random.default_rng(0)
-    print("| robot | PyBullet 3.2.7 (Python env) steps/s | prac over dm_env_rpc from Python steps/s | ratio |")
-    print("|---|---|---|---|")
+    n = args.num_envs
+    print(f"| robot | PyBullet 3.2.7 (Python env) steps/s | prac, one env | ratio | prac, vector of {n} | ratio |")
+    print("|---|---:|---:|---:|---:|---:|")
+
+    def row(name, theirs, ours, vector):
+        print(f"| {name} | {theirs:,.0f} | {ours:,.0f} | {ours / theirs:.2f}x | {vector:,.0f} | {vector / theirs:.2f}x |", flush=True)
+
     for name in args.domains.split(","):
         ours = prac_rate(name, args.seconds, rng)
+        vector = vector_rate(PRAC[name], n, args.seconds, rng)
         theirs = pybullet_rate(name, args.seconds, rng)
-        print(f"| {name} | {theirs:,.0f} | {ours:,.0f} | {ours / theirs:.2f}x |", flush=True)
+        row(name, theirs, ours, vector)
     # The protocol's own cost: a step of the pendulum costs next to nothing on either side.
     ours = gymnasium_rate("prac/Pendulum-v0", args.seconds, rng)
+    vector = vector_rate("prac/Pendulum-v0", n, args.seconds, rng)
     theirs = gymnasium_rate("Pendulum-v1", args.seconds, rng)
-    print(f"| pendulum (gymnasium's Pendulum-v1, pure Python) | {theirs:,.0f} | {ours:,.0f} | {ours / theirs:.2f}x |")
+    row("pendulum (gymnasium's Pendulum-v1, pure Python)", theirs, ours, vector)
 
 
 if __name__ == "__main__":

@@ -4,6 +4,12 @@
 //! - worlds: each CreateWorld makes one environment of the domain (setting `seed`, INT64: its
 //!   first episode's seed, the server's `--seed` otherwise); one agent per world; the worlds a
 //!   connection created are destroyed when it ends;
+//! - vector worlds: with the setting `num_envs` (INT64, 1..=1024) a world holds that many
+//!   environments, stepped together on the machine's cores: every tensor gains a leading
+//!   dimension of that size, observations `terminated` and `truncated` (BOOL) say which ended,
+//!   the state stays RUNNING, and an environment that ended starts its next episode at the
+//!   following step, ignoring its action (gymnasium's next-step autoreset). Environment i plays
+//!   seeds `seed + i`, `seed + i + num_envs`, ...;
 //! - specs: the action `action` (FLOAT, the domain's bounds); observations `observation` (FLOAT,
 //!   the domain's documented ranges), `reward` and `discount` (DOUBLE), `env_id` (STRING) and
 //!   `max_episode_steps` (INT64);
@@ -27,7 +33,7 @@ use tonic::{Request as GrpcRequest, Response as GrpcResponse, Status, Streaming}
 use super::tensor;
 use super::wire::dm_env_rpc::v1 as pb;
 use super::wire::google::rpc::Status as ErrorStatus;
-use crate::domains::{self, Env};
+use crate::domains::{self, Env, EnvSpec};
 use pb::environment_request::Payload as Request;
 use pb::environment_response::Payload as Response;
 use pb::environment_server::{Environment, EnvironmentServer};
@@ -38,6 +44,8 @@ const REWARD: u64 = 2;
 const DISCOUNT: u64 = 3;
 const ENV_ID: u64 = 4;
 const MAX_EPISODE_STEPS: u64 = 5;
+const TERMINATED: u64 = 6;
+const TRUNCATED: u64 = 7;
 /// An action this far past a bound (relative to the bound's range) is still taken, clipped:
 /// float32 rounding of a rescaled tanh lands just outside.
 const BOUND_TOLERANCE: f32 = 1e-6;
@@ -71,50 +79,141 @@ fn lock(world: &Mutex<World>) -> Result<MutexGuard<'_, World>, Refusal> {
         .map_err(|_| Refusal(INTERNAL, "the world failed earlier".into()))
 }
 
-/// One environment and the state of its episode.
-struct World {
+/// One environment of a world and the state of its episode.
+struct Slot {
     env: Box<dyn Env>,
+    /// The seed of this slot's next episode; each episode after it adds the world's size, so
+    /// the slots of a world play distinct seeds.
     next_seed: u64,
-    joined: bool,
     running: bool,
     obs: Vec<f32>,
-    action: Vec<f32>,
     reward: f64,
-    discount: f64,
+    terminated: bool,
+    truncated: bool,
+}
+
+impl Slot {
+    /// Starts the next episode: its observation, reward 0, no end.
+    fn start(&mut self, stride: u64) -> Result<(), Refusal> {
+        self.env
+            .reset(self.next_seed, &mut self.obs)
+            .map_err(|e| Refusal(INTERNAL, e.to_string()))?;
+        self.next_seed = self.next_seed.wrapping_add(stride);
+        (self.running, self.reward) = (true, 0.0);
+        (self.terminated, self.truncated) = (false, false);
+        Ok(())
+    }
+
+    fn step(&mut self, action: &[f32]) -> Result<(), Refusal> {
+        let t = self
+            .env
+            .step(action, &mut self.obs)
+            .map_err(|e| Refusal(INTERNAL, e.to_string()))?;
+        (self.reward, self.terminated, self.truncated) = (t.reward, t.terminated, t.truncated);
+        self.running = !(t.terminated || t.truncated);
+        Ok(())
+    }
+
+    /// A vector world's step of this slot: one that ended last step starts its next episode
+    /// instead, ignoring its action (gymnasium's next-step autoreset).
+    fn advance(&mut self, action: &[f32], stride: u64) -> Result<(), Refusal> {
+        if self.running {
+            self.step(action)
+        } else {
+            self.start(stride)
+        }
+    }
+}
+
+/// The environments of a world: one, or with the `num_envs` setting a vector of them whose
+/// tensors gain a leading dimension of that size.
+struct World {
+    slots: Vec<Slot>,
+    vector: bool,
+    joined: bool,
+    /// A vector world's slots have started their episodes since joining or the last reset.
+    started: bool,
+    action: Vec<f32>,
 }
 
 impl World {
-    fn new(domain: &str, seed: u64) -> World {
-        let env = domains::make(domain).expect("the domain was checked at start");
-        let spec = env.spec();
+    fn new(domain: &str, seed: u64, num_envs: Option<usize>) -> World {
+        let size = num_envs.unwrap_or(1);
+        let slots: Vec<Slot> = (0..size)
+            .map(|i| {
+                let env = domains::make(domain).expect("the domain was checked at start");
+                let obs = vec![0.0; env.spec().obs_dim];
+                Slot {
+                    env,
+                    next_seed: seed.wrapping_add(i as u64),
+                    running: false,
+                    obs,
+                    reward: 0.0,
+                    terminated: false,
+                    truncated: false,
+                }
+            })
+            .collect();
+        let act_dim = slots[0].env.spec().act_dim;
         World {
-            obs: vec![0.0; spec.obs_dim],
-            action: vec![0.0; spec.act_dim],
-            env,
-            next_seed: seed,
+            slots,
+            vector: num_envs.is_some(),
             joined: false,
-            running: false,
-            reward: 0.0,
-            discount: 1.0,
+            started: false,
+            action: vec![0.0; size * act_dim],
         }
     }
 
-    /// Ends the episode: the next step starts one (seeded with `seed` where given).
+    fn spec(&self) -> &EnvSpec {
+        self.slots[0].env.spec()
+    }
+
+    fn size(&self) -> usize {
+        self.slots.len()
+    }
+
+    /// Ends the episodes: the next step starts new ones (slot i seeded with `seed + i` where
+    /// given).
     fn restart(&mut self, seed: Option<u64>) {
-        if let Some(seed) = seed {
-            self.next_seed = seed;
+        for (i, slot) in self.slots.iter_mut().enumerate() {
+            if let Some(seed) = seed {
+                slot.next_seed = seed.wrapping_add(i as u64);
+            }
+            slot.running = false;
         }
-        self.running = false;
+        self.started = false;
+    }
+
+    /// A tensor's shape in this world: a vector world's tensors lead with its size.
+    fn shape(&self, dims: &[usize]) -> Vec<i32> {
+        let lead = self.vector.then_some(self.size());
+        lead.iter().chain(dims).map(|&d| d as i32).collect()
+    }
+
+    fn observation_uids(&self) -> std::ops::RangeInclusive<u64> {
+        OBSERVATION..=if self.vector {
+            TRUNCATED
+        } else {
+            MAX_EPISODE_STEPS
+        }
     }
 
     fn specs(&self) -> pb::ActionObservationSpecs {
-        let spec = self.env.spec();
+        let spec = self.spec();
+        let repeat = |values: &[f32]| values.repeat(self.size());
         let bounded = |name: &str, low: &[f32], high: &[f32]| pb::TensorSpec {
             name: name.to_string(),
-            shape: vec![low.len() as i32],
+            shape: self.shape(&[low.len()]),
             dtype: pb::DataType::Float as i32,
-            min: Some(float_bound(low)),
-            max: Some(float_bound(high)),
+            min: Some(float_bound(repeat(low))),
+            max: Some(float_bound(repeat(high))),
+        };
+        let per_env = |name: &str, dtype: pb::DataType| pb::TensorSpec {
+            name: name.to_string(),
+            shape: self.shape(&[]),
+            dtype: dtype as i32,
+            min: None,
+            max: None,
         };
         let scalar = |name: &str, dtype: pb::DataType| pb::TensorSpec {
             name: name.to_string(),
@@ -123,24 +222,29 @@ impl World {
             min: None,
             max: None,
         };
+        let mut observations = HashMap::from([
+            (
+                OBSERVATION,
+                bounded("observation", &spec.obs_low, &spec.obs_high),
+            ),
+            (REWARD, per_env("reward", pb::DataType::Double)),
+            (DISCOUNT, per_env("discount", pb::DataType::Double)),
+            (ENV_ID, scalar("env_id", pb::DataType::String)),
+            (
+                MAX_EPISODE_STEPS,
+                scalar("max_episode_steps", pb::DataType::Int64),
+            ),
+        ]);
+        if self.vector {
+            observations.insert(TERMINATED, per_env("terminated", pb::DataType::Bool));
+            observations.insert(TRUNCATED, per_env("truncated", pb::DataType::Bool));
+        }
         pb::ActionObservationSpecs {
             actions: HashMap::from([(
                 ACTION,
                 bounded("action", &spec.action_low, &spec.action_high),
             )]),
-            observations: HashMap::from([
-                (
-                    OBSERVATION,
-                    bounded("observation", &spec.obs_low, &spec.obs_high),
-                ),
-                (REWARD, scalar("reward", pb::DataType::Double)),
-                (DISCOUNT, scalar("discount", pb::DataType::Double)),
-                (ENV_ID, scalar("env_id", pb::DataType::String)),
-                (
-                    MAX_EPISODE_STEPS,
-                    scalar("max_episode_steps", pb::DataType::Int64),
-                ),
-            ]),
+            observations,
         }
     }
 
@@ -160,7 +264,8 @@ impl World {
                 format!("the step has no action (uid {ACTION})"),
             );
         };
-        let n = self.action.len();
+        let act_dim = self.spec().act_dim;
+        let shape = self.shape(&[act_dim]);
         let values: Vec<f32> = match &tensor.payload {
             Some(pb::tensor::Payload::Floats(a)) => a.array.clone(),
             Some(pb::tensor::Payload::Doubles(a)) => a.array.iter().map(|&v| v as f32).collect(),
@@ -171,30 +276,36 @@ impl World {
                 );
             }
         };
-        if tensor.shape != [n as i32] || values.len() != n {
+        if tensor.shape != shape || values.len() != self.action.len() {
             return refuse(
                 INVALID_ARGUMENT,
                 format!(
-                    "the action has shape {:?} and {} values; the spec's shape is [{n}]",
+                    "the action has shape {:?} and {} values; the spec's shape is {shape:?}",
                     tensor.shape,
                     values.len()
                 ),
             );
         }
-        let spec = self.env.spec();
-        for (i, &v) in values.iter().enumerate() {
+        let spec = self.spec();
+        for (k, &v) in values.iter().enumerate() {
+            let i = k % act_dim;
+            let at = if self.vector {
+                format!("action[{}][{i}]", k / act_dim)
+            } else {
+                format!("action[{i}]")
+            };
             let (low, high) = (spec.action_low[i], spec.action_high[i]);
             let slack = BOUND_TOLERANCE * (high - low);
             if !v.is_finite() {
                 return refuse(
                     INVALID_ARGUMENT,
-                    format!("action[{i}] is {v}; every value must be finite"),
+                    format!("{at} is {v}; every value must be finite"),
                 );
             }
             if v < low - slack || v > high + slack {
                 return refuse(
                     INVALID_ARGUMENT,
-                    format!("action[{i}] is {v}, outside [{low}, {high}]"),
+                    format!("{at} is {v}, outside [{low}, {high}]"),
                 );
             }
         }
@@ -203,43 +314,40 @@ impl World {
     }
 
     fn step(&mut self, request: &pb::StepRequest) -> Result<pb::StepResponse, Refusal> {
+        let known = self.observation_uids();
         if let Some(uid) = request
             .requested_observations
             .iter()
-            .find(|&&u| !(OBSERVATION..=MAX_EPISODE_STEPS).contains(&u))
+            .find(|&u| !known.contains(u))
         {
             return refuse(
                 INVALID_ARGUMENT,
                 format!(
                     "unknown observation uid {uid}; known: {:?}",
-                    (OBSERVATION..=MAX_EPISODE_STEPS).collect::<Vec<_>>()
+                    known.collect::<Vec<_>>()
                 ),
             );
         }
-        let state = if !self.running {
-            // Actions are ignored: the step starts an episode.
-            let seed = self.next_seed;
-            self.env
-                .reset(seed, &mut self.obs)
-                .map_err(|e| Refusal(INTERNAL, e.to_string()))?;
-            self.next_seed = seed.wrapping_add(1);
-            (self.running, self.reward, self.discount) = (true, 0.0, 1.0);
+        let state = if self.vector {
+            self.step_vector(&request.actions)?;
             pb::EnvironmentStateType::Running
         } else {
-            self.read_action(&request.actions)?;
-            let t = self
-                .env
-                .step(&self.action, &mut self.obs)
-                .map_err(|e| Refusal(INVALID_ARGUMENT, e.to_string()))?;
-            self.reward = t.reward;
-            self.discount = if t.terminated { 0.0 } else { 1.0 };
-            self.running = !(t.terminated || t.truncated);
-            if t.terminated {
-                pb::EnvironmentStateType::Terminated
-            } else if t.truncated {
-                pb::EnvironmentStateType::Interrupted
-            } else {
+            let slot = &mut self.slots[0];
+            if !slot.running {
+                // Actions are ignored: the step starts an episode.
+                slot.start(1)?;
                 pb::EnvironmentStateType::Running
+            } else {
+                self.read_action(&request.actions)?;
+                let slot = &mut self.slots[0];
+                slot.step(&self.action)?;
+                if slot.terminated {
+                    pb::EnvironmentStateType::Terminated
+                } else if slot.truncated {
+                    pb::EnvironmentStateType::Interrupted
+                } else {
+                    pb::EnvironmentStateType::Running
+                }
             }
         };
         let observations = request
@@ -253,49 +361,134 @@ impl World {
         })
     }
 
+    /// Steps every slot of a vector world, on as many threads as there are cores: the first
+    /// step after joining or a reset starts them all, ignoring the actions.
+    fn step_vector(&mut self, actions: &HashMap<u64, pb::Tensor>) -> Result<(), Refusal> {
+        let stride = self.size() as u64;
+        if !self.started {
+            for slot in &mut self.slots {
+                slot.start(stride)?;
+            }
+            self.started = true;
+            return Ok(());
+        }
+        self.read_action(actions)?;
+        let act_dim = self.spec().act_dim;
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let per_thread = self.size().div_ceil(threads);
+        if per_thread == self.size() {
+            for (slot, action) in self.slots.iter_mut().zip(self.action.chunks(act_dim)) {
+                slot.advance(action, stride)?;
+            }
+            return Ok(());
+        }
+        std::thread::scope(|scope| {
+            let work: Vec<_> = self
+                .slots
+                .chunks_mut(per_thread)
+                .zip(self.action.chunks(per_thread * act_dim))
+                .map(|(slots, actions)| {
+                    scope.spawn(move || {
+                        slots
+                            .iter_mut()
+                            .zip(actions.chunks(act_dim))
+                            .try_for_each(|(slot, action)| slot.advance(action, stride))
+                    })
+                })
+                .collect();
+            work.into_iter()
+                .try_for_each(|w| w.join().expect("a domain's step panicked"))
+        })
+    }
+
     fn observe(&self, uid: u64) -> pb::Tensor {
-        let spec = self.env.spec();
+        let spec = self.spec();
+        let per_env = |value: fn(&Slot) -> f64| {
+            let values: Vec<f64> = self.slots.iter().map(value).collect();
+            tensor::doubles(&values, self.shape(&[]))
+        };
+        let flags = |flag: fn(&Slot) -> bool| pb::Tensor {
+            shape: self.shape(&[]),
+            payload: Some(pb::tensor::Payload::Bools(pb::tensor::BoolArray {
+                array: self.slots.iter().map(flag).collect(),
+            })),
+        };
         match uid {
-            OBSERVATION => tensor::floats(&self.obs),
-            REWARD => tensor::doubles(&[self.reward], Vec::new()),
-            DISCOUNT => tensor::doubles(&[self.discount], Vec::new()),
+            OBSERVATION if self.vector => {
+                let values: Vec<f32> = self.slots.iter().flat_map(|s| s.obs.clone()).collect();
+                pb::Tensor {
+                    shape: self.shape(&[spec.obs_dim]),
+                    ..tensor::floats(&values)
+                }
+            }
+            OBSERVATION => tensor::floats(&self.slots[0].obs),
+            REWARD => per_env(|s| s.reward),
+            DISCOUNT => per_env(|s| if s.terminated { 0.0 } else { 1.0 }),
             ENV_ID => tensor::string(spec.name),
+            TERMINATED => flags(|s| s.terminated),
+            TRUNCATED => flags(|s| s.truncated),
             _ => tensor::scalar_i64(i64::from(spec.episode_len)),
         }
     }
 }
 
-fn float_bound(values: &[f32]) -> pb::tensor_spec::Value {
+fn float_bound(values: Vec<f32>) -> pb::tensor_spec::Value {
     pb::tensor_spec::Value {
         payload: Some(pb::tensor_spec::value::Payload::Floats(
-            pb::tensor::FloatArray {
-                array: values.to_vec(),
-            },
+            pb::tensor::FloatArray { array: values },
         )),
     }
 }
 
-/// The `seed` setting, the only one there is; None where it is not given.
-fn seed_setting(settings: &HashMap<String, pb::Tensor>) -> Result<Option<u64>, Refusal> {
-    let mut unknown: Vec<&String> = settings.keys().filter(|k| *k != "seed").collect();
+/// The largest `num_envs` a world may have.
+const MAX_NUM_ENVS: usize = 1024;
+
+/// A request's settings: `seed` everywhere, `num_envs` where a world is created.
+#[derive(Default)]
+struct Settings {
+    seed: Option<u64>,
+    num_envs: Option<usize>,
+}
+
+fn read_settings(
+    settings: &HashMap<String, pb::Tensor>,
+    known: &[&str],
+) -> Result<Settings, Refusal> {
+    let mut unknown: Vec<&String> = settings
+        .keys()
+        .filter(|k| !known.contains(&k.as_str()))
+        .collect();
     if !unknown.is_empty() {
         unknown.sort();
         return refuse(
             INVALID_ARGUMENT,
-            format!("unknown settings {unknown:?}; known: [\"seed\"]"),
+            format!("unknown settings {unknown:?}; known here: {known:?}"),
         );
     }
-    let Some(tensor) = settings.get("seed") else {
-        return Ok(None);
+    let integer = |name: &str, min: i64, max: i64| -> Result<Option<i64>, Refusal> {
+        let Some(tensor) = settings.get(name) else {
+            return Ok(None);
+        };
+        match tensor::read_integer(tensor) {
+            Some(v) if (min..=max).contains(&v) => Ok(Some(v)),
+            Some(v) if max == i64::MAX => refuse(
+                INVALID_ARGUMENT,
+                format!("setting '{name}' is {v}; it must be >= {min}"),
+            ),
+            Some(v) => refuse(
+                INVALID_ARGUMENT,
+                format!("setting '{name}' is {v}; it must be in {min}..={max}"),
+            ),
+            None => refuse(
+                INVALID_ARGUMENT,
+                format!("setting '{name}' is not an integer"),
+            ),
+        }
     };
-    match tensor::read_integer(tensor) {
-        Some(seed) if seed >= 0 => Ok(Some(seed as u64)),
-        Some(seed) => refuse(
-            INVALID_ARGUMENT,
-            format!("setting 'seed' is {seed}; it must be >= 0"),
-        ),
-        None => refuse(INVALID_ARGUMENT, "setting 'seed' is not an integer"),
-    }
+    Ok(Settings {
+        seed: integer("seed", 0, i64::MAX)?.map(|v| v as u64),
+        num_envs: integer("num_envs", 1, MAX_NUM_ENVS as i64)?.map(|v| v as usize),
+    })
 }
 
 type Worlds = Arc<Mutex<HashMap<String, Arc<Mutex<World>>>>>;
@@ -348,10 +541,15 @@ impl DomainServer {
     ) -> Result<Response, Refusal> {
         match request {
             Request::CreateWorld(create) => {
-                let seed = seed_setting(&create.settings)?.unwrap_or(self.seed);
+                let settings = read_settings(&create.settings, &["seed", "num_envs"])?;
+                let seed = settings.seed.unwrap_or(self.seed);
                 let n = self.created.fetch_add(1, Ordering::Relaxed);
                 let name = format!("{}-{n}", self.domain);
-                let world = Arc::new(Mutex::new(World::new(&self.domain, seed)));
+                let world = Arc::new(Mutex::new(World::new(
+                    &self.domain,
+                    seed,
+                    settings.num_envs,
+                )));
                 self.worlds
                     .lock()
                     .expect("world map lock")
@@ -368,7 +566,7 @@ impl DomainServer {
                         "this connection has joined a world already; leave it first",
                     );
                 }
-                let seed = seed_setting(&join.settings)?;
+                let seed = read_settings(&join.settings, &["seed"])?.seed;
                 let world = self.world(&join.world_name)?;
                 let specs = {
                     let mut w = lock(&world)?;
@@ -405,7 +603,7 @@ impl DomainServer {
                 }
             }
             Request::ResetWorld(reset) => {
-                let seed = seed_setting(&reset.settings)?;
+                let seed = read_settings(&reset.settings, &["seed"])?.seed;
                 let world = self.world(&reset.world_name)?;
                 lock(&world)?.restart(seed);
                 Ok(Response::ResetWorld(pb::ResetWorldResponse {}))
@@ -413,7 +611,7 @@ impl DomainServer {
             Request::Extension(_) => refuse(UNIMPLEMENTED, "this server has no extensions"),
             Request::Step(step) => lock(joined_world(joined)?)?.step(&step).map(Response::Step),
             Request::Reset(reset) => {
-                let seed = seed_setting(&reset.settings)?;
+                let seed = read_settings(&reset.settings, &["seed"])?.seed;
                 let mut world = lock(joined_world(joined)?)?;
                 world.restart(seed);
                 Ok(Response::Reset(pb::ResetResponse {

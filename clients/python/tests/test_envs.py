@@ -176,3 +176,58 @@ def test_sb3_sac_trains_a_few_hundred_steps_on_a_prac_env() -> None:
         assert env.action_space.contains(action)
     finally:
         env.close()
+
+
+def test_a_vector_env_plays_each_env_as_its_own_episodes_with_next_step_autoreset() -> None:
+    num_envs, seed, steps = 3, 40, 80
+    vector = gymnasium.make_vec("prac/Hopper-v0", num_envs=num_envs, prac_bin=prac_bin())
+    assert isinstance(vector.unwrapped, prac_client.envs.PracVectorEnv)
+    assert vector.action_space.shape == (num_envs, 3)
+    assert vector.single_observation_space.shape == (15,)
+    rng = np.random.default_rng(1)
+    actions = rng.uniform(-1, 1, size=(steps, num_envs, 3)).astype(np.float32)
+    try:
+        obs, info = vector.reset(seed=seed)
+        played = [[obs[i]] for i in range(num_envs)]
+        seeds = [[int(s)] for s in info["episode_seed"]]
+        ended = np.zeros(num_envs, dtype=bool)
+        records = []
+        for a in actions:
+            obs, rewards, terminated, truncated, info = vector.step(a)
+            records.append((a, obs, rewards, terminated, truncated, ended.copy()))
+            for i in range(num_envs):
+                if ended[i]:  # the next-step autoreset: a new episode, reward 0, no end
+                    assert rewards[i] == 0.0 and not terminated[i] and not truncated[i]
+                    seeds[i].append(int(info["episode_seed"][i]))
+            ended = terminated | truncated
+        assert sum(len(s) for s in seeds) > num_envs, "no episode ended: the test needs autoresets"
+        assert sorted(s for per_env in seeds for s in per_env) == sorted(
+            {s for per_env in seeds for s in per_env}
+        ), "every episode has a seed of its own"
+        assert all(per_env[1:] == [per_env[0] + num_envs * k for k in range(1, len(per_env))] for per_env in seeds)
+
+        # Each environment of the vector is the single env replaying its seeds with its actions.
+        single = PracEnv("hopper", server=vector.unwrapped.server)
+        try:
+            for i in range(num_envs):
+                episodes = iter(seeds[i])
+                expected, _ = single.reset(seed=next(episodes))
+                for a, obs, rewards, terminated, truncated, was_ended in records:
+                    if was_ended[i]:
+                        expected, _ = single.reset(seed=next(episodes))
+                        np.testing.assert_array_equal(obs[i], expected)
+                        continue
+                    expected, reward, term, trunc, _ = single.step(a[i])
+                    np.testing.assert_array_equal(obs[i], expected)
+                    assert (rewards[i], terminated[i], truncated[i]) == (reward, term, trunc)
+        finally:
+            single.close()
+
+        with pytest.raises(ValueError, match="non-finite"):
+            vector.step(np.full((num_envs, 3), np.nan))
+        with pytest.raises(ValueError, match="one int"):
+            vector.reset(seed=[1, 2, 3])
+    finally:
+        vector.close()
+    with pytest.raises(ValueError, match="num_envs is 0"):
+        gymnasium.make_vec("prac/Hopper-v0", num_envs=0, prac_bin=prac_bin())

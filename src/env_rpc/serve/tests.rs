@@ -182,3 +182,153 @@ fn unknown_domains_are_refused_at_start() {
         "{e}"
     );
 }
+
+fn settings(pairs: &[(&str, i64)]) -> HashMap<String, pb::Tensor> {
+    pairs
+        .iter()
+        .map(|&(k, v)| (k.to_string(), tensor::scalar_i64(v)))
+        .collect()
+}
+
+#[test]
+fn a_vector_world_steps_each_env_as_the_local_domain_with_next_step_autoreset() {
+    let (n, seed, act_dim, obs_dim) = (3usize, 20u64, 3usize, 15usize);
+    let server = DomainServer::new("hopper", 0).unwrap();
+    let (mut joined, mut created) = (None, Vec::new());
+    let mut handle = |request: Request| server.handle(request, &mut joined, &mut created);
+    let refused = |answer: Result<Response, Refusal>| match answer {
+        Err(Refusal(code, message)) => (code, message),
+        Ok(_) => panic!("accepted"),
+    };
+    for (bad, expected) in [(0, "1..=1024"), (5000, "1..=1024")] {
+        let (c, m) = refused(handle(Request::CreateWorld(pb::CreateWorldRequest {
+            settings: settings(&[("num_envs", bad)]),
+        })));
+        assert!(c == INVALID_ARGUMENT && m.contains(expected), "{m}");
+    }
+    let Ok(Response::CreateWorld(world)) = handle(Request::CreateWorld(pb::CreateWorldRequest {
+        settings: settings(&[("num_envs", n as i64), ("seed", seed as i64)]),
+    })) else {
+        panic!("no world");
+    };
+    let Ok(Response::JoinWorld(join)) = handle(Request::JoinWorld(pb::JoinWorldRequest {
+        world_name: world.world_name,
+        settings: HashMap::new(),
+    })) else {
+        panic!("not joined");
+    };
+    let specs = join.specs.unwrap();
+    assert_eq!(specs.actions[&ACTION].shape, [n as i32, act_dim as i32]);
+    assert_eq!(
+        specs.observations[&OBSERVATION].shape,
+        [n as i32, obs_dim as i32]
+    );
+    assert_eq!(specs.observations[&TERMINATED].shape, [n as i32]);
+    let (c, m) = refused(handle(Request::Reset(pb::ResetRequest {
+        settings: settings(&[("num_envs", 2)]),
+    })));
+    assert!(
+        c == INVALID_ARGUMENT && m.contains("unknown settings"),
+        "{m}"
+    );
+
+    let vector_step = |action: &[f32]| {
+        Request::Step(pb::StepRequest {
+            actions: HashMap::from([(
+                ACTION,
+                pb::Tensor {
+                    shape: vec![n as i32, act_dim as i32],
+                    ..tensor::floats(action)
+                },
+            )]),
+            requested_observations: vec![OBSERVATION, REWARD, TERMINATED, TRUNCATED],
+        })
+    };
+    let read = |answer: pb::StepResponse| {
+        let mut obs = vec![0.0; n * obs_dim];
+        tensor::read_into("observation", &answer.observations[&OBSERVATION], &mut obs).unwrap();
+        let Some(pb::tensor::Payload::Doubles(rewards)) = &answer.observations[&REWARD].payload
+        else {
+            panic!("no rewards")
+        };
+        let flags = |uid| match &answer.observations[&uid].payload {
+            Some(pb::tensor::Payload::Bools(b)) => b.array.clone(),
+            _ => panic!("no flags"),
+        };
+        assert_eq!(answer.state(), pb::EnvironmentStateType::Running);
+        (
+            obs,
+            rewards.array.clone(),
+            flags(TERMINATED),
+            flags(TRUNCATED),
+        )
+    };
+
+    let mut local: Vec<_> = (0..n).map(|_| domains::make("hopper").unwrap()).collect();
+    let mut next_seed: Vec<u64> = (0..n as u64).map(|i| seed + i).collect();
+    let mut expected = vec![0.0; n * obs_dim];
+    let Ok(Response::Step(first)) = handle(vector_step(&[f32::NAN; 9])) else {
+        panic!("the first step starts the episodes, ignoring its actions");
+    };
+    for i in 0..n {
+        local[i]
+            .reset(next_seed[i], &mut expected[i * obs_dim..(i + 1) * obs_dim])
+            .unwrap();
+        next_seed[i] += n as u64;
+    }
+    assert_eq!(read(first).0, expected);
+
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let (mut ended, mut autoresets) = (vec![false; n], 0);
+    for t in 0..120 {
+        let action: Vec<f32> = (0..n * act_dim)
+            .map(|_| rng.random_range(-1.0..=1.0))
+            .collect();
+        if t == 30 {
+            for (bad, message) in [
+                (vec![0.0; act_dim], "shape"),
+                (
+                    [vec![0.0; 5], vec![f32::NAN], vec![0.0; 3]].concat(),
+                    "action[1][2] is NaN",
+                ),
+            ] {
+                let request = if bad.len() == n * act_dim {
+                    vector_step(&bad)
+                } else {
+                    step(bad)
+                };
+                let (c, m) = refused(handle(request));
+                assert!(c == INVALID_ARGUMENT && m.contains(message), "{m}");
+            }
+        }
+        let Ok(Response::Step(answer)) = handle(vector_step(&action)) else {
+            panic!("step {t} refused");
+        };
+        let (obs, rewards, terminated, truncated) = read(answer);
+        for i in 0..n {
+            let out = &mut expected[i * obs_dim..(i + 1) * obs_dim];
+            if ended[i] {
+                local[i].reset(next_seed[i], out).unwrap();
+                next_seed[i] += n as u64;
+                assert_eq!(
+                    (rewards[i], terminated[i], truncated[i]),
+                    (0.0, false, false)
+                );
+                ended[i] = false;
+                autoresets += 1;
+            } else {
+                let s = local[i]
+                    .step(&action[i * act_dim..(i + 1) * act_dim], out)
+                    .unwrap();
+                assert_eq!(
+                    (rewards[i], terminated[i], truncated[i]),
+                    (s.reward, s.terminated, s.truncated),
+                    "env {i} step {t}"
+                );
+                ended[i] = s.terminated || s.truncated;
+            }
+        }
+        assert_eq!(obs, expected, "step {t}");
+    }
+    assert!(autoresets >= n, "random hoppers fall within 120 steps");
+}
