@@ -103,6 +103,9 @@ struct RobotDef {
     /// rapier steps per control period: each recomputes the multibody's mass matrix, the
     /// costliest part of a step (see docs/domains.md).
     substeps: usize,
+    /// The links collide with each other, except with their ancestors (PyBullet's
+    /// URDF_USE_SELF_COLLISION_EXCLUDE_ALL_PARENTS; only the Humanoid's geoms have conaffinity).
+    self_collision: bool,
 }
 
 fn v(x: f32, y: f32, z: f32) -> Vector {
@@ -211,6 +214,7 @@ fn ant() -> RobotDef {
         cost_scale: 1.0,
         friction: 1.5 * FLOOR_FRICTION,
         substeps: 1,
+        self_collision: false,
     }
 }
 
@@ -415,6 +419,7 @@ fn humanoid() -> RobotDef {
         cost_scale: 4.25,
         friction: 0.8 * FLOOR_FRICTION,
         substeps: 4,
+        self_collision: true,
     }
 }
 
@@ -483,11 +488,29 @@ impl Spatial {
             ..Default::default()
         };
         world.integration_parameters.dt = CONTROL_PERIOD / self.robot.substeps as f32;
-        // The robot touches only the floor (no self-collision; see docs/domains.md).
-        let robot_group =
-            InteractionGroups::new(Group::GROUP_1, Group::GROUP_2, InteractionTestMode::And);
-        let ground_group =
-            InteractionGroups::new(Group::GROUP_2, Group::ALL, InteractionTestMode::And);
+        // The floor is the last group; link k is group k and collides with the floor and, with
+        // self-collision, with every link but itself and its ancestors.
+        let floor = Group::GROUP_32;
+        let ground_group = InteractionGroups::new(floor, Group::ALL, InteractionTestMode::And);
+        let link_groups: Vec<InteractionGroups> = (0..self.robot.links.len())
+            .map(|k| {
+                let mut touches = floor;
+                if self.robot.self_collision {
+                    let mut excluded = Group::from_bits_truncate(1 << k);
+                    let mut ancestor = self.robot.links[k].parent;
+                    while let Some(a) = ancestor {
+                        excluded |= Group::from_bits_truncate(1 << a);
+                        ancestor = self.robot.links[a].parent;
+                    }
+                    touches |= Group::ALL.difference(floor | excluded);
+                }
+                InteractionGroups::new(
+                    Group::from_bits_truncate(1 << k),
+                    touches,
+                    InteractionTestMode::And,
+                )
+            })
+            .collect();
         let (_, ground) = world.insert(
             RigidBodyBuilder::fixed().translation(v(0.0, 0.0, -0.5)),
             ColliderBuilder::cuboid(2000.0, 2000.0, 0.5)
@@ -496,7 +519,7 @@ impl Spatial {
         );
         let mut bodies = Vec::new();
         let mut colliders = Vec::new();
-        for link in &self.robot.links {
+        for (link, &groups) in self.robot.links.iter().zip(&link_groups) {
             let mut builder = RigidBodyBuilder::dynamic()
                 .translation(link.origin)
                 .can_sleep(false);
@@ -527,7 +550,7 @@ impl Spatial {
                         shape
                             .density(0.0)
                             .friction(self.robot.friction)
-                            .collision_groups(robot_group),
+                            .collision_groups(groups),
                         Some(body),
                     )
                 })
@@ -617,6 +640,27 @@ impl Spatial {
     fn potential(&self) -> f64 {
         let p = self.body_xyz();
         walker_base::potential((TARGET_X - p.x).hypot(p.y))
+    }
+
+    /// Whether links `a` and `b` may touch (a test of the collision groups).
+    #[cfg(test)]
+    pub(crate) fn links_collide(&self, a: usize, b: usize) -> bool {
+        let groups = |k: usize| self.world.colliders[self.colliders[k][0]].collision_groups();
+        groups(a).test(groups(b))
+    }
+
+    /// Touching pairs of the robot's own colliders now.
+    #[cfg(test)]
+    pub(crate) fn self_contacts(&self) -> usize {
+        self.world
+            .narrow_phase
+            .contact_pairs()
+            .filter(|pair| {
+                pair.has_any_active_contact()
+                    && pair.collider1 != self.ground
+                    && pair.collider2 != self.ground
+            })
+            .count()
     }
 
     fn read_joints(&mut self) {

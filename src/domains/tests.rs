@@ -355,6 +355,49 @@ fn the_ant_and_humanoid_weigh_what_pybullet_gives_them() {
 }
 
 #[test]
+fn the_humanoids_links_touch_each_other_but_not_their_ancestors_as_in_pybullet() {
+    // Links with shapes: 0 torso, 2 lower waist, 3 pelvis; per leg (right 4-7, left 8-11) the
+    // thigh on its third hinge and shin and foot on the knee; per arm (right 12-14, left 15-17)
+    // the upper arm on its second hinge and the forearm and hand on the elbow.
+    let env = Spatial::humanoid();
+    let (waist, pelvis, right_thigh, right_shin, left_thigh, left_shin) = (2, 3, 6, 7, 10, 11);
+    let (right_forearm, left_forearm) = (14, 17);
+    assert!(env.links_collide(right_shin, left_shin));
+    assert!(env.links_collide(right_thigh, left_thigh));
+    assert!(env.links_collide(right_forearm, left_thigh));
+    assert!(env.links_collide(left_forearm, pelvis));
+    assert!(env.links_collide(right_forearm, waist));
+    assert!(!env.links_collide(right_shin, right_thigh), "a parent");
+    assert!(!env.links_collide(left_shin, pelvis), "an ancestor");
+    assert!(
+        !env.links_collide(right_forearm, 0),
+        "the torso is every arm's ancestor"
+    );
+    // The Ant's geoms have no conaffinity in its file: its legs pass through each other.
+    let ant = Spatial::ant();
+    assert!(!ant.links_collide(2, 4));
+
+    // Random episodes touch themselves now and then, as PyBullet's do (5 of 190 steps).
+    let mut env = Spatial::humanoid();
+    let (mut obs, mut rng) = ([0.0f32; 44], ChaCha8Rng::seed_from_u64(3));
+    let (mut steps, mut touching) = (0, 0);
+    for seed in 0..10 {
+        env.reset(seed, &mut obs).unwrap();
+        loop {
+            let action: Vec<f32> = (0..17).map(|_| rng.random_range(-1.0..=1.0)).collect();
+            let t = env.step(&action, &mut obs).unwrap();
+            steps += 1;
+            touching += usize::from(env.self_contacts() > 0);
+            if t.terminated || t.truncated {
+                break;
+            }
+        }
+    }
+    assert!(touching > 0, "no self-contact in {steps} steps");
+    eprintln!("self-contact in {touching} of {steps} steps");
+}
+
+#[test]
 fn the_humanoid_without_torques_falls_and_terminates() {
     for seed in 0..3 {
         let mut env = make("humanoid").unwrap();
