@@ -426,26 +426,32 @@ fn the_humanoid_without_torques_falls_and_terminates() {
     }
 }
 
+/// PyBullet resets the Ant's ankles outside their limits and its limits never push a joint back,
+/// so with zero torque the legs give way under the torso: PyBullet's AntBulletEnv-v0 ends at step
+/// 20 with its torso on the floor in every one of 30 zero-action episodes (measured with pybullet
+/// 3.2.7), and so must ours.
 #[test]
-fn the_ant_at_rest_lands_on_its_feet_and_stays_alive() {
+fn the_ant_at_rest_collapses_as_pybullets_does() {
     let mut env = make("ant").unwrap();
     let mut obs = [0.0f32; 28];
-    env.reset(4, &mut obs).unwrap();
-    assert_eq!(obs[0], 0.0);
-    assert!(obs[1].abs() < 1e-3 && obs[2] > 0.999, "{obs:?}");
-    let mut steps = 0;
-    loop {
-        let t = env.step(&[0.0; 8], &mut obs).unwrap();
-        steps += 1;
-        assert!(!t.terminated, "step {steps}: {obs:?}");
-        if t.truncated {
-            break;
-        }
+    for seed in 0..5 {
+        env.reset(seed, &mut obs).unwrap();
+        assert_eq!(obs[0], 0.0);
+        assert!(obs[1].abs() < 1e-3 && obs[2] > 0.999, "{obs:?}");
+        let mut steps = 0;
+        let last = loop {
+            let t = env.step(&[0.0; 8], &mut obs).unwrap();
+            steps += 1;
+            if t.terminated || t.truncated {
+                break t;
+            }
+        };
+        assert!(last.terminated, "seed {seed}: stood for {steps} steps");
+        assert!(
+            (15..=25).contains(&steps),
+            "seed {seed}: fell at step {steps}"
+        );
     }
-    assert_eq!(steps, 1000);
-    // It dropped onto its four feet, which touch the ground.
-    assert!(obs[0] < -0.1, "{}", obs[0]);
-    assert_eq!(&obs[24..], &[1.0; 4]);
 }
 
 #[test]
@@ -455,8 +461,7 @@ fn joint_torques_add_no_momentum_and_multibody_links_stay_jointed() {
         let mut obs = vec![0.0f32; spec.obs_dim];
         env.reset(1, &mut obs).unwrap();
         env.float_freely_for_test();
-        // The reset leaves joints outside their limits (the Ant's ankles, as in PyBullet); let the
-        // limits bring them back before measuring.
+        // Let the reset's self-contacts (the Humanoid's feet may start touching) settle first.
         for _ in 0..60 {
             env.step(&vec![0.0; spec.act_dim], &mut obs).unwrap();
         }
