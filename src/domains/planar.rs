@@ -464,7 +464,7 @@ impl Planar {
             first_joint.get_or_insert(handle);
         }
         // No default damping (PyBullet has none); the reset angles as drawn, inside the limits
-        // or not, as PyBullet sets them (the limits push them back in the first steps).
+        // or not, as PyBullet sets them (the limits only stop them going further out).
         if let Some(first) = first_joint {
             let (multibody, _) = world
                 .multibody_joints

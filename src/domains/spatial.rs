@@ -852,8 +852,8 @@ impl Env for Spatial {
         check_obs_len(&self.spec, obs)?;
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         // PyBullet draws U(-0.1, 0.1) per joint, inside the limits or not (the Ant's ankles
-        // start up to 40 degrees outside theirs, and the limits push them back as the robot
-        // drops).
+        // start up to 40 degrees outside theirs and stay there until torques or contacts move
+        // them: the limits never push back).
         let angles: Vec<f32> = (1..self.robot.links.len())
             .map(|_| rng.random_range(-0.1f32..0.1))
             .collect();

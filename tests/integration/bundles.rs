@@ -94,7 +94,7 @@ fn the_shipped_hopper_bundle_hops_forward_without_falling() {
 /// least 10 m forward on average (a fallen episode counts with the distance it made).
 #[test]
 #[ignore = "the shipped Humanoid learned to walk without self-collision; with PyBullet's \
-            self-collision it falls after about 105 steps (docs/results.md), until a bundle \
+            self-collision it falls after about 100 steps (docs/results.md), until a bundle \
             trained with it ships"]
 fn the_shipped_humanoid_bundle_walks_without_falling() {
     let (_, episodes) = play("humanoid", 5);
