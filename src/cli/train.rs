@@ -90,6 +90,11 @@ pub struct TrainArgs {
     /// Hidden layers of actor and critics, e.g. 256,256.
     #[arg(long, value_delimiter = ',')]
     pub hidden: Option<Vec<usize>>,
+    /// Normalise the actor's and critics' observations by the running mean and variance of
+    /// those seen (the SB3 zoo's `normalize: true`); the bundle carries them. A run resumes
+    /// the way it started.
+    #[arg(long)]
+    pub norm_obs: bool,
 }
 
 fn apply_overrides(config: &mut SacConfig, a: &TrainArgs) {
@@ -109,6 +114,7 @@ fn apply_overrides(config: &mut SacConfig, a: &TrainArgs) {
     set!(train_freq);
     set!(gradient_steps);
     set!(hidden);
+    config.norm_obs |= a.norm_obs;
 }
 
 pub fn train(args: TrainArgs) -> anyhow::Result<()> {

@@ -3,7 +3,7 @@
 
 use std::sync::Arc;
 
-use crate::manifest::{Manifest, Normalization, QAggregation};
+use crate::manifest::{Manifest, Normalization, ObsNormalization, QAggregation};
 use crate::nn::{Dense, Mlp, MlpScratch, resize};
 use crate::plan::{MAX_CHUNK, Networks};
 
@@ -103,8 +103,8 @@ fn aggregate(how: QAggregation, k: usize, acc: f32, value: f32) -> f32 {
 #[derive(Clone, Debug)]
 pub struct Evaluator {
     policy: Arc<Policy>,
-    /// The bundle's observation normalisation as (mean, 1 / std, clip), for the actor and critics.
-    obs_scale: Option<(Vec<f32>, Vec<f32>, f32)>,
+    /// The bundle's observation normalisation, for the actor and critics.
+    obs_scale: Option<ObsScale>,
     /// Normalised observations of the current call.
     normalized: Vec<f32>,
     actor: MlpScratch,
@@ -137,7 +137,7 @@ impl Evaluator {
                 .manifest
                 .obs_normalization
                 .as_ref()
-                .map(|n| (n.mean.clone(), n.inverse_std(), n.clip_obs)),
+                .map(ObsScale::new),
             normalized: Vec::with_capacity(rows * od),
             actor: policy.actor.trunk.scratch_for(rows),
             mu: Vec::with_capacity(rows * ad),
@@ -257,24 +257,45 @@ impl Networks for Evaluator {
 }
 
 /// The observations as the actor and critics see them: `obs` itself, or normalised into `out`.
-fn normalize<'a>(
-    scale: &Option<(Vec<f32>, Vec<f32>, f32)>,
-    obs: &'a [f32],
-    out: &'a mut Vec<f32>,
-) -> &'a [f32] {
-    let Some((mean, inverse_std, clip)) = scale else {
+fn normalize<'a>(scale: &Option<ObsScale>, obs: &'a [f32], out: &'a mut Vec<f32>) -> &'a [f32] {
+    let Some(scale) = scale else {
         return obs;
     };
     out.clear();
-    for row in obs.chunks_exact(mean.len()) {
-        out.extend(
-            row.iter()
-                .zip(mean)
-                .zip(inverse_std)
-                .map(|((s, m), k)| ((s - m) * k).clamp(-clip, *clip)),
-        );
-    }
+    scale.extend_normalized(obs, out);
     out
+}
+
+/// A bundle's observation normalisation ready to apply: `clip((s - mean) / sqrt(var + eps))`
+/// per feature, as SB3's VecNormalize computes it. The server and training share it.
+#[derive(Clone, Debug)]
+pub struct ObsScale {
+    mean: Vec<f32>,
+    inverse_std: Vec<f32>,
+    clip: f32,
+}
+
+impl ObsScale {
+    pub fn new(normalization: &ObsNormalization) -> ObsScale {
+        ObsScale {
+            mean: normalization.mean.clone(),
+            inverse_std: normalization.inverse_std(),
+            clip: normalization.clip_obs,
+        }
+    }
+
+    /// Appends the normalised rows of `obs` (rows of the normalisation's width) to `out`.
+    pub fn extend_normalized(&self, obs: &[f32], out: &mut Vec<f32>) {
+        let clip = self.clip;
+        for row in obs.chunks_exact(self.mean.len()) {
+            out.extend(
+                row.iter()
+                    .zip(&self.mean)
+                    .zip(&self.inverse_std)
+                    .map(|((s, m), k)| ((s - m) * k).clamp(-clip, clip)),
+            );
+        }
+    }
 }
 
 /// Maps an action from [-1, 1] to the bounds [low, high] (the policy's or the domain's).

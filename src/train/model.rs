@@ -9,7 +9,7 @@ use rand::Rng;
 use serde::{Deserialize, Serialize};
 
 use super::nets::{MlpNet, matrix, scalar};
-use crate::bundle::Normalization;
+use crate::bundle::{Normalization, ObsNormalization};
 use crate::policy::DynamicsModel;
 
 /// A feature whose deviation is below this is constant in the data: it is normalised by 1, not
@@ -59,6 +59,22 @@ impl RunningStats {
                 }
             })
             .collect()
+    }
+}
+
+impl RunningStats {
+    /// The observation normalisation `--norm-obs` trains and ships with: these statistics'
+    /// mean and population variance, with VecNormalize's clip 10 and epsilon 1e-8. A feature
+    /// that has not varied (std below 1e-4) gets variance 1, as the model's normalisation gives
+    /// it std 1: dividing by its float noise would make the networks hypersensitive to it.
+    pub fn obs_normalization(&self) -> ObsNormalization {
+        let std = self.std_f32();
+        ObsNormalization {
+            mean: self.mean_f32(),
+            var: std.iter().map(|s| s * s).collect(),
+            clip_obs: 10.0,
+            epsilon: 1e-8,
+        }
     }
 }
 

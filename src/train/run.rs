@@ -20,14 +20,14 @@ use super::model::ModelTrainer;
 use super::options::{Progress, TrainOptions};
 use super::sac::{Batch, Sac, SacConfig, SacLosses};
 use crate::bundle::{
-    ActorKind, ActorSpec, CriticSpec, FORMAT_VERSION, Manifest, ModelSpec, Provenance,
-    QAggregation, ValueScale,
+    ActorKind, ActorSpec, CriticSpec, FORMAT_VERSION, FORMAT_VERSION_ACTOR_KINDS, Manifest,
+    ModelSpec, Provenance, QAggregation, ValueScale,
 };
 use crate::domains::{self, Env, EnvSpec, EpisodeTotals};
 use crate::eval::{self, ModelError, Trajectory};
 use crate::nn::Activation;
 use crate::plan::{Growth, Networks, Planner, ReplanConfig};
-use crate::policy::{Evaluator, Policy};
+use crate::policy::{Evaluator, ObsScale, Policy};
 
 /// What a finished run reports.
 #[derive(Clone, Debug, Serialize)]
@@ -101,6 +101,10 @@ pub fn snapshot(sac: &Sac, model: &ModelTrainer, spec: &EnvSpec, steps: u64, see
     let mut manifest = manifest(spec, &sac.config, model.stats.normalization(), steps, seed);
     if let Some(m) = &mut manifest.model {
         m.hidden = model.hidden();
+    }
+    if sac.config.norm_obs {
+        manifest.format_version = FORMAT_VERSION_ACTOR_KINDS;
+        manifest.obs_normalization = Some(model.stats.obs.obs_normalization());
     }
     Policy {
         manifest,
@@ -218,6 +222,17 @@ impl Trainer {
         let mut buffer = None;
         if resumed {
             let saved = checkpoint::load(&options.checkpoint_dir, &mut sac, &mut model)?;
+            if saved.options.sac.norm_obs != options.sac.norm_obs {
+                let was = if saved.options.sac.norm_obs {
+                    "with"
+                } else {
+                    "without"
+                };
+                bail!(
+                    "checkpoint {} was trained {was} --norm-obs; resume it the same way",
+                    options.checkpoint_dir.display()
+                );
+            }
             if saved.options.domain != options.domain {
                 bail!(
                     "checkpoint {} is for domain '{}', not '{}'",
@@ -304,6 +319,7 @@ impl Trainer {
         let mut noise = vec![0.0; ad];
         let mut delta = Vec::with_capacity(od);
         let mut batch = Batch::default();
+        let mut normalized = Vec::new();
         let mut update_noise = Vec::new();
         let mut evaluator = Evaluator::new(self.policy.clone());
 
@@ -355,9 +371,23 @@ impl Trainer {
                     .step
                     .is_multiple_of(self.options.sac.train_freq)
             {
+                // The actor and critics learn on observations normalised as the policy that
+                // acts next (refreshed below) will normalise them; the model learns on raw ones.
+                let obs_scale = self
+                    .sac
+                    .config
+                    .norm_obs
+                    .then(|| ObsScale::new(&self.model.stats.obs.obs_normalization()));
                 for _ in 0..self.options.sac.gradient_steps {
                     let n = self.options.sac.batch_size;
                     self.buffer.sample(n, &mut self.rng, &mut batch);
+                    if let Some(scale) = &obs_scale {
+                        for rows in [&mut batch.obs, &mut batch.next_obs] {
+                            normalized.clear();
+                            scale.extend_normalized(rows, &mut normalized);
+                            std::mem::swap(rows, &mut normalized);
+                        }
+                    }
                     update_noise.clear();
                     update_noise.extend((0..2 * n * ad).map(|_| {
                         let z: f32 = self.rng.sample(StandardNormal);

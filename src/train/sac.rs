@@ -30,6 +30,11 @@ pub struct SacConfig {
     /// The dynamics model (4 x 64 ReLU, Adam 1e-4, one step per SAC gradient step).
     pub model_hidden: Vec<usize>,
     pub model_learning_rate: f64,
+    /// Actor and critics see observations normalised by the running mean and variance of those
+    /// seen so far, as the SB3 zoo's `normalize: true` (VecNormalize) does; the bundle carries
+    /// the statistics as its `obs_normalization`. Off by default (absent in older checkpoints).
+    #[serde(default)]
+    pub norm_obs: bool,
 }
 
 impl Default for SacConfig {
@@ -49,6 +54,7 @@ impl Default for SacConfig {
             n_critics: 2,
             model_hidden: vec![64, 64, 64, 64],
             model_learning_rate: 1e-4,
+            norm_obs: false,
         }
     }
 }

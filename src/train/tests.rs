@@ -388,3 +388,102 @@ fn constant_features_are_normalised_by_one() {
     assert_eq!(std[2], 1.0);
     assert_eq!(RunningStats::new(2).std_f32(), vec![1.0, 1.0]);
 }
+
+/// `--norm-obs`: the snapshot that acts (and the bundle) normalises raw observations with the
+/// running statistics exactly as the learner's inputs were normalised, so the served actor
+/// computes what the burn actor computes on the normalised observation.
+#[test]
+fn norm_obs_policies_normalise_as_the_learner_did() {
+    use crate::policy::ObsScale;
+    let mut rng = ChaCha8Rng::seed_from_u64(8);
+    let spec = domains::make("pendulum").unwrap().spec().clone();
+    let config = SacConfig {
+        norm_obs: true,
+        ..small_config()
+    };
+    let sac = Sac::new(config, spec.obs_dim, spec.act_dim, &mut rng);
+    let mut model = ModelTrainer::new(3, 1, &[8, 8], 1e-4, &mut rng, &sac.device);
+    let mut delta = Vec::new();
+    for k in 0..50 {
+        let x = k as f32 / 10.0;
+        model.stats.push(
+            &[x.cos(), 3.0 * x.sin(), 8.0 + x],
+            &[0.1],
+            &[0.0; 3],
+            &mut delta,
+        );
+    }
+    let policy = snapshot(&sac, &model, &spec, 50, 0);
+    let norm = policy.manifest.obs_normalization.clone().unwrap();
+    assert_eq!(norm.mean, model.stats.obs.mean_f32());
+    assert!((norm.var[2] - 2.0825).abs() < 1e-3, "{:?}", norm.var);
+    // Through the bundle format and back.
+    let bytes = crate::bundle::to_bytes(&policy).unwrap();
+    let loaded = Arc::new(crate::bundle::from_bytes(&bytes, std::path::Path::new("t")).unwrap());
+    let raw = [0.3f32, -2.0, 9.5];
+    let mut normalised = Vec::new();
+    ObsScale::new(&norm).extend_normalized(&raw, &mut normalised);
+    assert!(normalised[2].abs() < 3.0 && (normalised[2] - raw[2]).abs() > 5.0);
+    let mean: Tensor<2> = sac
+        .actor
+        .mean_action(matrix(&normalised, 1, 3, &sac.device));
+    let mut action = [0.0f32];
+    Evaluator::new(loaded).act(&raw, &[0.0], &mut action);
+    assert!((rows(mean)[0] - action[0]).abs() < 1e-5);
+    // Without the flag the bundle carries no normalisation.
+    let plain = Sac::new(small_config(), 3, 1, &mut rng);
+    assert!(
+        snapshot(&plain, &model, &spec, 50, 0)
+            .manifest
+            .obs_normalization
+            .is_none()
+    );
+}
+
+/// A run trained with `--norm-obs` writes a bundle that carries its statistics, and resumes only
+/// the way it started: its networks learned on normalised inputs.
+#[test]
+fn norm_obs_runs_ship_their_statistics_and_resume_only_with_the_flag() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("p.safetensors");
+    let mut options = TrainOptions::new("pendulum", &out);
+    options.steps = 600;
+    options.eval_every = 1_000_000;
+    options.eval_episodes = 1;
+    options.value_episodes = 2;
+    options.progress = false;
+    options.sac.norm_obs = true;
+    let mut trainer = Trainer::new(options.clone(), false).unwrap();
+    trainer.run().unwrap();
+    trainer.checkpoint().unwrap();
+    let bundle = crate::bundle::load(&out).unwrap();
+    let norm = bundle.manifest.obs_normalization.unwrap();
+    // The pendulum's cos and sin of the angle, and its speed: 600 steps of them.
+    assert!(
+        norm.var.iter().all(|&v| v > 0.0 && v.is_finite()),
+        "{norm:?}"
+    );
+    assert!(
+        norm.mean[0].abs() <= 1.0 && norm.var[2] > norm.var[0],
+        "{norm:?}"
+    );
+    assert_eq!(bundle.manifest.format_version, 2);
+
+    let state = std::fs::read(options.checkpoint_dir.join("state.json")).unwrap();
+    let mut plain = options.clone();
+    plain.sac.norm_obs = false;
+    plain.steps = 700;
+    let Err(e) = Trainer::new(plain, true) else {
+        panic!("resumed without --norm-obs");
+    };
+    assert!(e.to_string().contains("with --norm-obs"), "{e}");
+    assert_eq!(
+        std::fs::read(options.checkpoint_dir.join("state.json")).unwrap(),
+        state
+    );
+    options.steps = 700;
+    let mut resumed = Trainer::new(options, true).unwrap();
+    assert_eq!(resumed.progress.step, 600);
+    resumed.run().unwrap();
+    assert_eq!(resumed.progress.step, 700);
+}
