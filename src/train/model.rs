@@ -60,9 +60,7 @@ impl RunningStats {
             })
             .collect()
     }
-}
 
-impl RunningStats {
     /// The observation normalisation `--norm-obs` trains and ships with: these statistics'
     /// mean and population variance, with VecNormalize's clip 10 and epsilon 1e-8. A feature
     /// that has not varied (std below 1e-4) gets variance 1, as the model's normalisation gives
