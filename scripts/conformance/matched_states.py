@@ -7,6 +7,9 @@ for them, so that `prac play-from-states` can play the same actions from the sam
                   observe_now) and reward terms after each of them
   --fixture FILE  a few states per domain with what PyBullet computes at them (observation,
                   body x, alive bonus, effort costs for a fixed action): the fixture of the tests
+  --step-fixture FILE
+                  a few states per domain, one random action each and what PyBullet observes
+                  after it: the tests' fixture for one step of the physics
 """
 
 import argparse
@@ -144,8 +147,15 @@ def main():
     group = parser.add_mutually_exclusive_group(required=True)
     group.add_argument("--out", help="cases file, with {domain} in its name")
     group.add_argument("--fixture", help="the tests' fixture")
+    group.add_argument("--step-fixture", help="the tests' fixture of single steps")
     args = parser.parse_args()
     names = args.domains.split(",")
+    if args.step_fixture:
+        fixture = {n: record(n, args.cases, 1, args.seed, False) for n in names}
+        with open(args.step_fixture, "w") as f:
+            json.dump(fixture, f)
+            f.write("\n")
+        return
     if args.fixture:
         fixture = {n: record(n, args.cases, 0, args.seed, True) for n in names}
         with open(args.fixture, "w") as f:

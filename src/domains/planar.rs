@@ -7,11 +7,12 @@ use rand_chacha::ChaCha8Rng;
 use rapier2d::prelude::*;
 
 use super::walker_base::{
-    self, BULLET_LIMIT_SPRING, CONTROL_PERIOD, GRAVITY, MORE, TARGET_X, WalkerEpisode, bullet_drag,
-    clip_observation,
+    self, BULLET_LIMIT_SPRING, BULLET_SOLVER_ITERATIONS, CONTROL_PERIOD, GRAVITY, MORE, TARGET_X,
+    WalkerEpisode, bullet_drag, clip_observation,
 };
 use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, wrap_angle};
 
+/// PyBullet's numSubSteps: Bullet steps per control period.
 const SUBSTEPS: usize = 4;
 const FLOOR_FRICTION: f32 = 0.64;
 
@@ -275,12 +276,6 @@ fn cheetah() -> RobotDef {
     }
 }
 
-/// `v` turned counter-clockwise by `angle` (rad).
-fn rotate(v: Vector, angle: f32) -> Vector {
-    let (sin, cos) = angle.sin_cos();
-    Vector::new(cos * v.x - sin * v.y, sin * v.x + cos * v.y)
-}
-
 /// A planar walker's state in PyBullet's coordinates: the root's x and z slides and its pitch
 /// hinge (the models' `ignorex`, `ignorez` and `ignorey` joints, which pivot where the torso's
 /// frame is at rest), their speeds, and every actuated joint's angle and speed (rad, rad/s) in
@@ -307,6 +302,8 @@ pub struct Planar {
     episode: WalkerEpisode,
     /// Joint positions (normalised) and speeds (x 0.1), PyBullet's `j`.
     joint_state: Vec<f32>,
+    /// The robot's multibody (any of its joints names it).
+    multibody: Option<MultibodyJointHandle>,
 }
 
 impl Planar {
@@ -358,6 +355,7 @@ impl Planar {
             initial_z: 0.0,
             episode,
             joint_state: vec![0.0; 2 * n],
+            multibody: None,
         };
         env.build(&PlanarState {
             joints: vec![0.0; n],
@@ -369,13 +367,15 @@ impl Planar {
 
     /// A fresh world with the robot in the given state (its lengths checked by the caller).
     fn build(&mut self, state: &PlanarState) {
-        // The free root's generalised coordinates: x, z, then its angle.
-        const ROOT_ANGLE_DOF: usize = 2;
         let mut world = PhysicsWorld {
             gravity: Vector::new(0.0, -GRAVITY),
             ..Default::default()
         };
+        // Bullet's time discretisation: each of its substeps is one rapier step of one solver
+        // substep (rapier's default of four would make sixteen), with Bullet's 5 iterations.
         world.integration_parameters.dt = CONTROL_PERIOD / SUBSTEPS as f32;
+        world.integration_parameters.num_solver_iterations = 1;
+        world.integration_parameters.num_internal_pgs_iterations = BULLET_SOLVER_ITERATIONS;
         let robot_group =
             InteractionGroups::new(Group::GROUP_1, Group::GROUP_2, InteractionTestMode::And);
         let ground_group =
@@ -386,31 +386,21 @@ impl Planar {
                 .friction(FLOOR_FRICTION)
                 .collision_groups(ground_group),
         );
-        // The links at rest; the joint angles are applied through the multibody below.
+        // The links at rest; the multibody below poses them from the state.
         let origins: Vec<Vector> = self
             .robot
             .links
             .iter()
             .map(|l| Vector::new(l.origin.0, l.origin.1))
             .collect();
-        // The root's slides move its pivot; its hinge (about +y, clockwise in our x-z plane)
-        // turns the torso about it.
-        let [x, z, pitch] = state.root;
-        let pivot = Vector::new(self.robot.root.0, self.robot.root.1);
-        let moved_pivot = pivot + Vector::new(x, z);
-        let root_origin = moved_pivot + rotate(origins[0] - pivot, -pitch);
         let mut bodies = Vec::new();
         let mut colliders = Vec::new();
-        for (k, (link, origin)) in self.robot.links.iter().zip(&origins).enumerate() {
+        for (link, origin) in self.robot.links.iter().zip(&origins) {
             let inertial = &link.inertial;
             let com = Vector::new(inertial.com.0, inertial.com.1) - *origin;
-            // The root's pitch is a displacement below: rapier2d's free root joint keeps its
-            // angle in a coordinate that a body's rotation does not set, so the first step
-            // would turn a rotated body back.
-            let at = if k == 0 { root_origin } else { *origin };
             let body = world.insert_body(
                 RigidBodyBuilder::dynamic()
-                    .translation(at)
+                    .translation(*origin)
                     .additional_mass_properties(MassProperties::new(
                         com,
                         inertial.mass,
@@ -437,9 +427,41 @@ impl Planar {
             bodies.push(body);
             colliders.push(handles);
         }
-        // One multibody (reduced coordinates, like PyBullet's btMultiBody): the joints cannot
-        // come apart under large torques, which impulse joints let happen.
-        let mut first_joint = None;
+        // One multibody (reduced coordinates, like PyBullet's btMultiBody) rooted as PyBullet
+        // roots it: a fixed base, massless links sliding along x and z, and a hinge at the pivot
+        // turning the torso. Bullet integrates these coordinates, and with the Hopper's and
+        // Walker's pivot 1.25 m below the torso that differs from integrating a free torso
+        // (docs/domains.md, "From matched states").
+        let pivot = Vector::new(self.robot.root.0, self.robot.root.1);
+        let base = world.insert_body(RigidBodyBuilder::fixed().translation(pivot));
+        let massless = || {
+            RigidBodyBuilder::dynamic()
+                .translation(pivot)
+                .can_sleep(false)
+        };
+        let (slide_x, slide_z) = (world.insert_body(massless()), world.insert_body(massless()));
+        let multibody = world
+            .insert_multibody_joint(base, slide_x, PrismaticJointBuilder::new(Vector::X))
+            .expect("the root is a chain");
+        let root_joints = [
+            (
+                slide_x,
+                slide_z,
+                GenericJoint::from(PrismaticJointBuilder::new(Vector::Y)),
+            ),
+            (
+                slide_z,
+                bodies[0],
+                RevoluteJointBuilder::new()
+                    .local_anchor2(pivot - origins[0])
+                    .into(),
+            ),
+        ];
+        for (parent, child, joint) in root_joints {
+            world
+                .insert_multibody_joint(parent, child, joint)
+                .expect("the root is a chain");
+        }
         for joint in &self.robot.joints {
             let anchor = Vector::new(joint.anchor.0, joint.anchor.1);
             // Limits in the plane's counter-clockwise convention.
@@ -458,67 +480,92 @@ impl Planar {
                     BULLET_LIMIT_SPRING.1,
                 ))
                 .contacts_enabled(false);
-            let handle = world
+            world
                 .insert_multibody_joint(bodies[joint.parent], bodies[joint.child], hinge)
                 .expect("the robot is a tree");
-            first_joint.get_or_insert(handle);
         }
-        // No default damping (PyBullet has none); the reset angles as drawn, inside the limits
-        // or not, as PyBullet sets them (the limits only stop them going further out).
-        if let Some(first) = first_joint {
-            let (multibody, _) = world
-                .multibody_joints
-                .get_mut(first)
-                .expect("the joint was just inserted");
-            multibody.forward_kinematics(&world.bodies, true);
-            multibody.damping_mut().fill(0.0);
-            let mut displacement = vec![0.0; multibody.ndofs()];
-            let mut joint_speeds = vec![0.0; multibody.ndofs()];
-            for (k, joint) in self.robot.joints.iter().enumerate() {
-                let dof = multibody
-                    .link(joint.child)
-                    .expect("links are numbered in insertion order")
-                    .assembly_id();
-                displacement[dof] = joint.axis * state.joints[k];
-                joint_speeds[dof] = joint.axis * state.joint_velocities[k];
-            }
-            displacement[ROOT_ANGLE_DOF] = -pitch;
-            multibody.apply_displacements(&displacement);
-            multibody.forward_kinematics(&world.bodies, false);
-            multibody.update_rigid_bodies(&mut world.bodies, true);
-            // The root's speed: its pivot's slide speeds plus its spin about the pivot, at the
-            // torso's centre of mass.
-            let [vx, vz, pitch_rate] = state.root_velocity;
-            let spin = -pitch_rate;
-            let arm = world.bodies[bodies[0]].center_of_mass() - moved_pivot;
-            let root_velocity = nalgebra::Vector3::new(vx - spin * arm.y, vz + spin * arm.x, spin);
-            // The generalised root speeds that give it: the root's jacobian over its own
-            // (free) coordinates is invertible.
-            let root_jacobian = multibody
-                .body_jacobian(0)
-                .fixed_columns::<3>(0)
-                .into_owned();
-            let root_speeds = root_jacobian
-                .try_inverse()
-                .expect("a free root's jacobian is invertible")
-                * root_velocity;
-            let mut speeds = multibody.generalized_velocity_mut();
-            for (dof, speed) in joint_speeds.iter().enumerate() {
-                speeds[dof] = if dof < 3 { root_speeds[dof] } else { *speed };
-            }
-            // Each link's velocity now, as the solver will see it from the generalised speeds.
-            let speeds = multibody.generalized_velocity().into_owned();
-            for (k, &body) in bodies.iter().enumerate() {
-                let velocity = multibody.body_jacobian(k) * &speeds;
-                let body = &mut world.bodies[body];
-                body.set_linvel(Vector::new(velocity[0], velocity[1]), false);
-                body.set_angvel(velocity[2], false);
-            }
+        // The state's coordinates, in the plane's counter-clockwise convention, at their
+        // degrees of freedom; the reset's joint angles as drawn, inside the limits or not, as
+        // PyBullet sets them (the limits only stop them going further out).
+        world
+            .multibody_joints
+            .get_mut(multibody)
+            .expect("the root was just inserted")
+            .0
+            .forward_kinematics(&world.bodies, true);
+        let [x, z, pitch] = state.root;
+        let [vx, vz, pitch_rate] = state.root_velocity;
+        let mut coordinates = vec![
+            (slide_x, x, vx),
+            (slide_z, z, vz),
+            (bodies[0], -pitch, -pitch_rate),
+        ];
+        for (k, joint) in self.robot.joints.iter().enumerate() {
+            coordinates.push((
+                bodies[joint.child],
+                joint.axis * state.joints[k],
+                joint.axis * state.joint_velocities[k],
+            ));
+        }
+        let dofs: Vec<usize> = coordinates
+            .iter()
+            .map(|&(body, _, _)| {
+                let link = world
+                    .multibody_joints
+                    .rigid_body_link(body)
+                    .expect("a link");
+                let (multibody, _) = world.multibody_joints.get(multibody).expect("inserted");
+                multibody.link(link.id).expect("a link").assembly_id()
+            })
+            .collect();
+        let (multibody_ref, _) = world
+            .multibody_joints
+            .get_mut(multibody)
+            .expect("the root was just inserted");
+        // No joint damping: PyBullet has none.
+        multibody_ref.damping_mut().fill(0.0);
+        let mut displacement = vec![0.0; multibody_ref.ndofs()];
+        for (&dof, &(_, value, _)) in dofs.iter().zip(&coordinates) {
+            displacement[dof] = value;
+        }
+        multibody_ref.apply_displacements(&displacement);
+        multibody_ref.forward_kinematics(&world.bodies, false);
+        multibody_ref.update_rigid_bodies(&mut world.bodies, true);
+        let mut speeds = multibody_ref.generalized_velocity_mut();
+        for (&dof, &(_, _, speed)) in dofs.iter().zip(&coordinates) {
+            speeds[dof] = speed;
         }
         self.world = world;
         self.ground = ground;
         self.bodies = bodies;
         self.colliders = colliders;
+        self.multibody = Some(multibody);
+        self.sync_link_velocities();
+    }
+
+    /// rapier writes a multibody's speeds into its links' bodies before its last internal
+    /// substep, so the bodies report speeds one substep old; this gives them the multibody's own.
+    fn sync_link_velocities(&mut self) {
+        let Some((multibody, _)) = self
+            .multibody
+            .and_then(|h| self.world.multibody_joints.get(h))
+        else {
+            return;
+        };
+        let speeds = multibody.generalized_velocity();
+        for k in 0..multibody.num_links() {
+            let body = multibody.link(k).expect("a link").rigid_body_handle();
+            let jacobian = multibody.body_jacobian(k);
+            let mut velocity = [0.0f32; 3];
+            for (row, v) in velocity.iter_mut().enumerate() {
+                *v = (0..speeds.len())
+                    .map(|dof| jacobian[(row, dof)] * speeds[dof])
+                    .sum();
+            }
+            let body = super::body_mut(&mut self.world.bodies, body);
+            body.set_linvel(Vector::new(velocity[0], velocity[1]), false);
+            body.set_angvel(velocity[2], false);
+        }
     }
 
     /// Starts an episode from PyBullet's state (as the reset would, initial height included) and
@@ -552,7 +599,7 @@ impl Planar {
         }
         self.build(state);
         // Where a reset's torso starts (the root does not move at reset).
-        self.initial_z = self.robot.links[0].origin.1;
+        self.initial_z = self.robot.links[0].inertial.com.1;
         self.episode.start(self.potential());
         self.observe(obs);
         Ok(())
@@ -654,7 +701,7 @@ impl Planar {
     fn observe(&mut self, obs: &mut [f32]) -> (f32, f32) {
         self.read_joints();
         let torso = self.torso();
-        let (pos, vel) = (torso.translation(), torso.linvel());
+        let (pos, vel) = (torso.center_of_mass(), torso.linvel());
         // The models turn about -y: a counter-clockwise angle in the x-z plane is minus pitch.
         let pitch = -torso.rotation().angle();
         let angle_to_target = (0.0f32).atan2(TARGET_X - pos.x);
@@ -687,7 +734,7 @@ impl Env for Planar {
     fn scene(&self) -> super::Scene {
         let ground = self.ground;
         let shapes = super::scene::world_shapes(&self.world.colliders, |h| h == ground);
-        let x = self.torso().translation().x;
+        let x = self.torso().center_of_mass().x;
         super::Scene {
             shapes,
             center: (f64::from(x), 1.0),
@@ -698,7 +745,7 @@ impl Env for Planar {
 
     fn trace(&self, predicted: &[f32]) -> Vec<(f64, f64)> {
         let dt = self.spec.control_period as f32;
-        let mut x = self.torso().translation().x;
+        let mut x = self.torso().center_of_mass().x;
         predicted
             .chunks_exact(self.spec.obs_dim)
             .map(|o| {
@@ -715,7 +762,7 @@ impl Env for Planar {
 
     /// The torso's x (the progress reward measures the parts' mean, [`Planar::body_x`]).
     fn forward_position(&self) -> Option<f64> {
-        Some(f64::from(self.torso().translation().x))
+        Some(f64::from(self.torso().center_of_mass().x))
     }
 
     fn spec(&self) -> &EnvSpec {
@@ -731,7 +778,7 @@ impl Env for Planar {
             joint_velocities: vec![0.0; n],
             ..PlanarState::default()
         });
-        self.initial_z = self.robot.links[0].origin.1;
+        self.initial_z = self.robot.links[0].inertial.com.1;
         self.episode.start(self.potential());
         self.observe(obs);
         Ok(())
@@ -743,6 +790,7 @@ impl Env for Planar {
         for _ in 0..SUBSTEPS {
             self.apply_forces(&a);
             super::engine(|| self.world.step());
+            self.sync_link_velocities();
         }
         let (z, pitch) = self.observe(obs);
         let (alive, ends) = self.alive_bonus(z, pitch, &obs[MORE + self.joint_state.len()..]);
@@ -778,7 +826,7 @@ impl Planar {
     /// given feet contacts, and the effort costs of `action`.
     pub(super) fn scores_for_test(&self, contacts: &[f32], action: &[f32]) -> [f64; 4] {
         let torso = self.torso();
-        let (z, pitch) = (torso.translation().y, -torso.rotation().angle());
+        let (z, pitch) = (torso.center_of_mass().y, -torso.rotation().angle());
         let (alive, _) = self.alive_bonus(z, pitch, contacts);
         let (power, at_limit) = walker_base::effort_cost_terms(action, &self.joint_state, 1.0);
         [f64::from(self.body_x()), alive, power, at_limit]
@@ -797,6 +845,7 @@ impl Planar {
         for _ in 0..(seconds / CONTROL_PERIOD) as usize * SUBSTEPS {
             self.apply_forces(&zero);
             super::engine(|| self.world.step());
+            self.sync_link_velocities();
         }
         self.torso().linvel().y
     }
