@@ -677,6 +677,8 @@ fn planar_walkers_step_from_pybullets_states_as_pybullet_does() {
         ("pitch", 0.005),
         ("joint angle", 0.004),
     ];
+    // Observed feet contacts that agree with PyBullet's, over all robots' cases and feet.
+    let (mut contacts_agreeing, mut contacts) = (0, 0);
     for name in ["hopper", "walker", "cheetah"] {
         let mut env = Planar::named(name).unwrap();
         let n = env.spec().act_dim;
@@ -696,6 +698,11 @@ fn planar_walkers_step_from_pybullets_states_as_pybullet_does() {
             sums[1] += (obs[3] - theirs[3]).abs() / 0.3;
             sums[2] += (obs[7] - theirs[7]).abs();
             sums[3] += joints / n as f32;
+            let feet = walker_base::MORE + 2 * n;
+            for (ours, theirs) in obs[feet..].iter().zip(&theirs[feet..]) {
+                contacts += 1;
+                contacts_agreeing += usize::from(ours == theirs);
+            }
         }
         for ((what, bound), sum) in bounds.iter().zip(sums) {
             let mean = sum / cases.len() as f32;
@@ -705,6 +712,11 @@ fn planar_walkers_step_from_pybullets_states_as_pybullet_does() {
             );
         }
     }
+    // 101 of 108 with contacts within 5 mm; rapier's 2 cm prediction distance gave 82.
+    assert!(
+        contacts_agreeing * 10 >= contacts * 9,
+        "{contacts_agreeing} of {contacts} contacts as PyBullet's"
+    );
 }
 
 /// PyBullet's planar walkers in states random actions brought them to, with what PyBullet
