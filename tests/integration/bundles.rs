@@ -93,9 +93,6 @@ fn the_shipped_hopper_bundle_hops_forward_without_falling() {
 /// The Humanoid's criterion: upright for all 1000 steps in at least 80% of episodes, walking at
 /// least 10 m forward on average (a fallen episode counts with the distance it made).
 #[test]
-#[ignore = "the shipped Humanoid, trained on with PyBullet's self-collision to 1.78M steps, \
-            stays upright in 31 of 50 episodes (the criterion is 80%; docs/results.md): its \
-            training goes on"]
 fn the_shipped_humanoid_bundle_walks_without_falling() {
     let (_, episodes) = play("humanoid", 5);
     let upright = count_upright(&episodes);
