@@ -7,13 +7,11 @@ use rand_chacha::ChaCha8Rng;
 use rapier2d::prelude::*;
 
 use super::walker_base::{
-    self, BULLET_LIMIT_SPRING, BULLET_SOLVER_ITERATIONS, CONTROL_PERIOD, GRAVITY, MORE, TARGET_X,
-    WalkerEpisode, bullet_drag, clip_observation,
+    self, BULLET_LIMIT_SPRING, BULLET_SOLVER_ITERATIONS, BULLET_SUBSTEPS, CONTROL_PERIOD, GRAVITY,
+    MORE, TARGET_X, WalkerEpisode, bullet_drag, clip_observation,
 };
 use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, wrap_angle};
 
-/// PyBullet's numSubSteps: Bullet steps per control period.
-const SUBSTEPS: usize = 4;
 const FLOOR_FRICTION: f32 = 0.64;
 /// A link is observed touching the floor when a contact point of the step's last collision
 /// detection is within this distance (m): the distance at which our contact flags agree best
@@ -376,9 +374,8 @@ impl Planar {
             gravity: Vector::new(0.0, -GRAVITY),
             ..Default::default()
         };
-        // Bullet's time discretisation: each of its substeps is one rapier step of one solver
-        // substep (rapier's default of four would make sixteen), with Bullet's 5 iterations.
-        world.integration_parameters.dt = CONTROL_PERIOD / SUBSTEPS as f32;
+        // Bullet's time discretisation and solver iterations.
+        world.integration_parameters.dt = CONTROL_PERIOD / BULLET_SUBSTEPS as f32;
         world.integration_parameters.num_solver_iterations = 1;
         world.integration_parameters.num_internal_pgs_iterations = BULLET_SOLVER_ITERATIONS;
         let robot_group =
@@ -793,7 +790,7 @@ impl Env for Planar {
     fn step(&mut self, action: &[f32], obs: &mut [f32]) -> Result<Transition, EnvError> {
         check_obs_len(&self.spec, obs)?;
         let a = self.episode.begin_step(&self.spec, action)?;
-        for _ in 0..SUBSTEPS {
+        for _ in 0..BULLET_SUBSTEPS {
             self.apply_forces(&a);
             super::engine(|| self.world.step());
             self.sync_link_velocities();
@@ -848,7 +845,7 @@ impl Planar {
     pub(super) fn drop_for_test(&mut self, seconds: f32) -> f32 {
         self.world.remove_collider(self.ground);
         let zero = vec![0.0; self.spec.act_dim];
-        for _ in 0..(seconds / CONTROL_PERIOD) as usize * SUBSTEPS {
+        for _ in 0..(seconds / CONTROL_PERIOD) as usize * BULLET_SUBSTEPS {
             self.apply_forces(&zero);
             super::engine(|| self.world.step());
             self.sync_link_velocities();

@@ -13,8 +13,8 @@ use rapier3d::prelude::*;
 
 use super::scene::{Part, Scene, Shape};
 use super::walker_base::{
-    self, BULLET_LIMIT_SPRING, CONTROL_PERIOD, GRAVITY, MORE, TARGET_X, WalkerEpisode, bullet_drag,
-    clip_observation,
+    self, BULLET_LIMIT_SPRING, BULLET_SOLVER_ITERATIONS, BULLET_SUBSTEPS, CONTROL_PERIOD, GRAVITY,
+    MORE, TARGET_X, WalkerEpisode, bullet_drag, clip_observation,
 };
 use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, wrap_angle};
 
@@ -100,9 +100,6 @@ struct RobotDef {
     cost_scale: f64,
     /// Bullet's combined friction of the robot's geoms on the floor.
     friction: f32,
-    /// rapier steps per control period: each recomputes the multibody's mass matrix, the
-    /// costliest part of a step (see docs/domains.md).
-    substeps: usize,
     /// The links collide with each other, except with their ancestors (PyBullet's
     /// URDF_USE_SELF_COLLISION_EXCLUDE_ALL_PARENTS; only the Humanoid's geoms have conaffinity).
     self_collision: bool,
@@ -213,7 +210,6 @@ fn ant() -> RobotDef {
         initial_z: None,
         cost_scale: 1.0,
         friction: 1.5 * FLOOR_FRICTION,
-        substeps: 1,
         self_collision: false,
     }
 }
@@ -418,7 +414,6 @@ fn humanoid() -> RobotDef {
         initial_z: Some(0.8),
         cost_scale: 4.25,
         friction: 0.8 * FLOOR_FRICTION,
-        substeps: 4,
         self_collision: true,
     }
 }
@@ -438,6 +433,8 @@ pub struct Spatial {
     joint_state: Vec<f32>,
     /// btMultiBody's drag on the links; off only for the free-floating momentum test.
     drag: bool,
+    /// The robot's multibody (any of its joints names it).
+    multibody: Option<MultibodyJointHandle>,
 }
 
 impl Spatial {
@@ -476,6 +473,7 @@ impl Spatial {
             episode,
             joint_state: vec![0.0; 2 * n],
             drag: true,
+            multibody: None,
         };
         env.build(&vec![0.0; n]);
         env
@@ -487,7 +485,10 @@ impl Spatial {
             gravity: v(0.0, 0.0, -GRAVITY),
             ..Default::default()
         };
-        world.integration_parameters.dt = CONTROL_PERIOD / self.robot.substeps as f32;
+        // Bullet's time discretisation and solver iterations.
+        world.integration_parameters.dt = CONTROL_PERIOD / BULLET_SUBSTEPS as f32;
+        world.integration_parameters.num_solver_iterations = 1;
+        world.integration_parameters.num_internal_pgs_iterations = BULLET_SOLVER_ITERATIONS;
         // The floor is the last group; link k is group k and collides with the floor and, with
         // self-collision, with every link but itself and its ancestors.
         let floor = Group::GROUP_32;
@@ -601,6 +602,32 @@ impl Spatial {
         self.ground = ground;
         self.bodies = bodies;
         self.colliders = colliders;
+        self.multibody = joint_handles.first().copied();
+    }
+
+    /// rapier writes a multibody's speeds into its links' bodies before its last solver
+    /// substep, so the bodies report speeds one substep old; this gives them the multibody's own.
+    fn sync_link_velocities(&mut self) {
+        let Some((multibody, _)) = self
+            .multibody
+            .and_then(|h| self.world.multibody_joints.get(h))
+        else {
+            return;
+        };
+        let speeds = multibody.generalized_velocity();
+        for k in 0..multibody.num_links() {
+            let body = multibody.link(k).expect("a link").rigid_body_handle();
+            let jacobian = multibody.body_jacobian(k);
+            let mut velocity = [0.0f32; 6];
+            for (row, v) in velocity.iter_mut().enumerate() {
+                *v = (0..speeds.len())
+                    .map(|dof| jacobian[(row, dof)] * speeds[dof])
+                    .sum();
+            }
+            let body = super::body_mut(&mut self.world.bodies, body);
+            body.set_linvel(Vector::new(velocity[0], velocity[1], velocity[2]), false);
+            body.set_angvel(Vector::new(velocity[3], velocity[4], velocity[5]), false);
+        }
     }
 
     /// The robot's mass in kg.
@@ -870,9 +897,10 @@ impl Env for Spatial {
     fn step(&mut self, action: &[f32], obs: &mut [f32]) -> Result<Transition, EnvError> {
         check_obs_len(&self.spec, obs)?;
         let a = self.episode.begin_step(&self.spec, action)?;
-        for _ in 0..self.robot.substeps {
+        for _ in 0..BULLET_SUBSTEPS {
             self.apply_forces(&a);
             super::engine(|| self.world.step());
+            self.sync_link_velocities();
         }
         let (z, _pitch) = self.observe(obs);
         let alive = if z > self.robot.alive.min_z {
@@ -894,10 +922,11 @@ impl Spatial {
     pub(super) fn drop_for_test(&mut self, seconds: f32) -> f32 {
         self.world.remove_collider(self.ground);
         let zero = vec![0.0; self.spec.act_dim];
-        let steps = (seconds / CONTROL_PERIOD) as usize * self.robot.substeps;
+        let steps = (seconds / CONTROL_PERIOD) as usize * BULLET_SUBSTEPS;
         for _ in 0..steps {
             self.apply_forces(&zero);
             super::engine(|| self.world.step());
+            self.sync_link_velocities();
         }
         self.torso().linvel().z
     }

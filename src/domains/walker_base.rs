@@ -15,6 +15,9 @@ pub(super) const TARGET_X: f32 = 1000.0;
 /// it back in). Frequency 0 makes rapier's ERP 0 (no position correction) and its CFM 0 (a rigid
 /// stop). PyBullet does not clamp a reset's joints into their ranges, and neither do we.
 pub(super) const BULLET_LIMIT_SPRING: (f32, f32) = (0.0, 1.0);
+/// PyBullet's numSubSteps: Bullet steps per control period. Each is one rapier step of one solver
+/// substep (rapier's default of four would make sixteen; docs/domains.md).
+pub(super) const BULLET_SUBSTEPS: usize = 4;
 /// PyBullet's numSolverIterations: constraint-solver iterations per Bullet substep.
 pub(super) const BULLET_SOLVER_ITERATIONS: usize = 5;
 /// Joint angles and speeds, then feet contacts, follow these 8 "more" values.
