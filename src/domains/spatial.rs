@@ -605,8 +605,7 @@ impl Spatial {
         self.multibody = joint_handles.first().copied();
     }
 
-    /// rapier writes a multibody's speeds into its links' bodies before its last solver
-    /// substep, so the bodies report speeds one substep old; this gives them the multibody's own.
+    /// Gives every link's body the multibody's current speeds ([`walker_base::link_velocity`]).
     fn sync_link_velocities(&mut self) {
         let Some((multibody, _)) = self
             .multibody
@@ -617,13 +616,7 @@ impl Spatial {
         let speeds = multibody.generalized_velocity();
         for k in 0..multibody.num_links() {
             let body = multibody.link(k).expect("a link").rigid_body_handle();
-            let jacobian = multibody.body_jacobian(k);
-            let mut velocity = [0.0f32; 6];
-            for (row, v) in velocity.iter_mut().enumerate() {
-                *v = (0..speeds.len())
-                    .map(|dof| jacobian[(row, dof)] * speeds[dof])
-                    .sum();
-            }
+            let velocity: [f32; 6] = walker_base::link_velocity(multibody.body_jacobian(k), speeds);
             let body = super::body_mut(&mut self.world.bodies, body);
             body.set_linvel(Vector::new(velocity[0], velocity[1], velocity[2]), false);
             body.set_angvel(Vector::new(velocity[3], velocity[4], velocity[5]), false);

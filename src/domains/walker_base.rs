@@ -31,6 +31,22 @@ const OBSERVATION_CLIP: f32 = 5.0;
 /// btMultiBody's default linear and angular damping, which PyBullet keeps.
 const BULLET_DRAG: f32 = 0.04;
 
+/// A multibody link's velocity, linear then angular (`N` = 3 in 2D, 6 in 3D): its body jacobian
+/// times the generalised speeds, without allocating. rapier writes a multibody's speeds into
+/// its links' bodies before its last solver substep, so the walkers read them from here.
+pub(super) fn link_velocity<const N: usize>(
+    jacobian: &nalgebra::OMatrix<f32, nalgebra::Const<N>, nalgebra::Dyn>,
+    speeds: nalgebra::DVectorView<'_, f32>,
+) -> [f32; N] {
+    let mut velocity = [0.0; N];
+    for (row, v) in velocity.iter_mut().enumerate() {
+        *v = (0..speeds.len())
+            .map(|dof| jacobian[(row, dof)] * speeds[dof])
+            .sum();
+    }
+    velocity
+}
+
 /// PyBullet's potential: minus the distance to the target per control period.
 pub(super) fn potential(distance_to_target: f32) -> f64 {
     -f64::from(distance_to_target) / f64::from(CONTROL_PERIOD)
