@@ -657,6 +657,12 @@ fn the_walkers_weigh_bend_and_push_as_in_pybullet() {
     }
 }
 
+/// A fixture's JSON array of numbers.
+fn floats(v: &serde_json::Value) -> Vec<f32> {
+    let values = v.as_array().unwrap();
+    values.iter().map(|x| x.as_f64().unwrap() as f32).collect()
+}
+
 /// PyBullet's planar walkers in states random actions brought them to, one random action each
 /// and what PyBullet observes after it (scripts/conformance/matched_states.py --step-fixture).
 const PYBULLET_STEPS: &str = include_str!("../../tests/fixtures/pybullet-steps.json");
@@ -664,10 +670,6 @@ const PYBULLET_STEPS: &str = include_str!("../../tests/fixtures/pybullet-steps.j
 #[test]
 fn planar_walkers_step_from_pybullets_states_as_pybullet_does() {
     let fixture: serde_json::Value = serde_json::from_str(PYBULLET_STEPS).unwrap();
-    let floats = |v: &serde_json::Value| -> Vec<f32> {
-        let values = v.as_array().unwrap();
-        values.iter().map(|x| x.as_f64().unwrap() as f32).collect()
-    };
     // Mean absolute differences after one step (height m, forward speed m/s, pitch rad, joint
     // angle over its range). A free root integrated at the torso, or rapier's sixteen solver
     // substeps per period, were 0.18 m/s and 0.008-0.009 rad off for the Hopper and Walker.
@@ -726,10 +728,6 @@ const PYBULLET_STATES: &str = include_str!("../../tests/fixtures/pybullet-states
 #[test]
 fn planar_walkers_set_to_pybullets_states_observe_and_score_as_pybullet() {
     let fixture: serde_json::Value = serde_json::from_str(PYBULLET_STATES).unwrap();
-    let floats = |v: &serde_json::Value| -> Vec<f32> {
-        let values = v.as_array().unwrap();
-        values.iter().map(|x| x.as_f64().unwrap() as f32).collect()
-    };
     for name in ["hopper", "walker", "cheetah"] {
         let mut env = Planar::named(name).unwrap();
         let mut obs = vec![0.0; env.spec().obs_dim];
