@@ -73,6 +73,13 @@ enum Command {
         /// Where the steps go (JSON).
         #[arg(long)]
         out: PathBuf,
+        /// Play this bundle's deterministic policy from each state (closed loop) instead of the
+        /// cases' actions.
+        #[arg(long)]
+        policy: Option<PathBuf>,
+        /// Steps the policy plays from each state (with --policy).
+        #[arg(long, default_value_t = 100)]
+        steps: usize,
     },
     /// Draw a domain (side view) to a PNG, optionally with a policy's imagined plan overlaid.
     Render {
@@ -215,9 +222,18 @@ fn main() -> ExitCode {
                 }
             })
         }
-        Command::PlayFromStates { input, out } => {
-            prac::cli::domains::play_from_states(&input, &out)
-        }
+        Command::PlayFromStates {
+            input,
+            out,
+            policy,
+            steps,
+        } => prac::cli::domains::play_from_states(
+            &input,
+            &out,
+            policy
+                .as_deref()
+                .map(|bundle| prac::cli::domains::ClosedLoop { bundle, steps }),
+        ),
         Command::Render {
             domain,
             seed,

@@ -10,6 +10,10 @@ for them, so that `prac play-from-states` can play the same actions from the sam
   --step-fixture FILE
                   a few states per domain, one random action each and what PyBullet observes
                   after it: the tests' fixture for one step of the physics
+  --policy-server HOST:PORT
+                  with --out: states the policy that `prac serve` serves there reaches in
+                  PyBullet (PrAC off, up to 150 steps in), and its actions from them, instead of
+                  random ones: the states a controller meets, not those of a flailing robot
 """
 
 import argparse
@@ -94,19 +98,28 @@ def at_state(env, obs, action):
     }
 
 
-def record(name, cases, horizon, seed, fixture):
+def record(name, cases, horizon, seed, fixture, session=None):
+    """States reached by random actions, or by the served policy when a session is given (then
+    the actions that follow are the policy's too, from PyBullet's observations)."""
     env = gym.make(ENVS[name])
     rng = np.random.default_rng(seed)
     out = []
     episode = 0
+
+    def act(obs, first=False):
+        if session is None:
+            return rng.uniform(-1.0, 1.0, size=env.action_space.shape)
+        reply = session.reset(obs) if first else session.step(obs)
+        return np.asarray(reply.action)
+
     while len(out) < cases:
         env.seed(seed + episode)
         obs = env.reset()
         episode += 1
-        prefix = int(rng.integers(5, 40))
+        prefix = int(rng.integers(5, 40 if session is None else 150))
         done = False
-        for _ in range(prefix):
-            obs, _, done, _ = env.step(rng.uniform(-1.0, 1.0, size=env.action_space.shape))
+        for i in range(prefix):
+            obs, _, done, _ = env.step(act(obs, first=i == 0))
             if done:
                 break
         if done:
@@ -120,8 +133,8 @@ def record(name, cases, horizon, seed, fixture):
         start = observe_now(robot)
         case = {"state": state, "actions": [], "pybullet": {"start": start.tolist(), "steps": []}}
         for _ in range(horizon):
-            action = rng.uniform(-1.0, 1.0, size=env.action_space.shape)
-            _, reward, done, _ = env.step(action)
+            action = act(obs)
+            obs, reward, done, _ = env.step(action)
             case["actions"].append(action.tolist())
             case["pybullet"]["steps"].append(
                 {
@@ -144,6 +157,9 @@ def main():
     parser.add_argument("--cases", type=int, default=30)
     parser.add_argument("--horizon", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--policy-server", help="play the policy `prac serve` serves there (PrAC off), not random"
+    )
     group = parser.add_mutually_exclusive_group(required=True)
     group.add_argument("--out", help="cases file, with {domain} in its name")
     group.add_argument("--fixture", help="the tests' fixture")
@@ -163,7 +179,14 @@ def main():
             f.write("\n")
         return
     for n in names:
-        cases = record(n, args.cases, args.horizon, args.seed, False)
+        if args.policy_server:
+            from prac_client import Client
+
+            with Client(args.policy_server, timeout=10) as client:
+                with client.session(n, epsilon_coef=0.0) as session:
+                    cases = record(n, args.cases, args.horizon, args.seed, False, session)
+        else:
+            cases = record(n, args.cases, args.horizon, args.seed, False)
         with open(args.out.format(domain=n), "w") as f:
             json.dump({"domain": n, "cases": cases}, f)
 

@@ -5,6 +5,11 @@ return, episode length, falls and forward distance (PyBullet's body x, the mean 
 as a markdown table; a policy that only works in our physics is a sign our physics is off.
 
   policies_in_pybullet.py --server 127.0.0.1:50181 [--episodes 20] [--domains hopper,...]
+                          [--observe-current]
+
+--observe-current gives the policy PyBullet's observation recomputed from the current link
+poses (matched_states.observe_now) instead of the step's, whose torso pose and speed are one
+substep old: to tell that lag from the physics when a policy falls in PyBullet.
 """
 
 import argparse
@@ -12,6 +17,7 @@ import argparse
 import gym
 import numpy as np
 import pybullet_envs  # noqa: F401  (registers the Bullet environments with gym)
+from matched_states import observe_now
 from prac_client import Client
 
 ENVS = {
@@ -24,7 +30,7 @@ ENVS = {
 SEED = 777_000
 
 
-def play(client, domain, episodes):
+def play(client, domain, episodes, observe_current=False):
     env = gym.make(ENVS[domain])
     returns, lengths, falls, distances = [], [], 0, []
     with client.session(domain, epsilon_coef=0.0) as session:
@@ -40,7 +46,7 @@ def play(client, domain, episodes):
                 total += reward
                 steps += 1
                 if not done:
-                    reply = session.step(obs)
+                    reply = session.step(observe_now(robot) if observe_current else obs)
             returns.append(total)
             lengths.append(steps)
             falls += int(not info.get("TimeLimit.truncated", False) and steps < 1000)
@@ -54,13 +60,14 @@ def main():
     parser.add_argument("--server", default="127.0.0.1:50181")
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--domains", default=",".join(ENVS))
+    parser.add_argument("--observe-current", action="store_true")
     args = parser.parse_args()
     print(f"Seeds {SEED}+, {args.episodes} episodes, PrAC off.\n")
     print("| domain | PyBullet task | return | episode length | falls | forward (m) |")
     print("|---|---|---:|---:|---:|---:|")
     with Client(args.server, timeout=10) as client:
         for domain in args.domains.split(","):
-            returns, lengths, falls, distances = play(client, domain, args.episodes)
+            returns, lengths, falls, distances = play(client, domain, args.episodes, args.observe_current)
             print(
                 f"| {domain} | {ENVS[domain]} | {np.mean(returns):.1f} +- {np.std(returns):.1f} "
                 f"| {np.mean(lengths):.0f} | {falls}/{args.episodes} | {np.mean(distances):.2f} |",

@@ -181,6 +181,8 @@ struct StateCase {
 /// One step played from a matched state.
 #[derive(serde::Serialize)]
 struct PlayedStep {
+    /// The action played (the case's, or the policy's).
+    action: Vec<f32>,
     obs: Vec<f32>,
     reward: f64,
     reward_terms: std::collections::BTreeMap<&'static str, f64>,
@@ -195,9 +197,20 @@ struct PlayedCase {
     steps: Vec<PlayedStep>,
 }
 
-/// Plays every case of `input` (see [`StateCases`]) and writes the observations and reward
-/// terms to `out`.
-pub fn play_from_states(input: &Path, out: &Path) -> anyhow::Result<()> {
+/// A policy that `play-from-states` plays from each state instead of the case's actions.
+pub struct ClosedLoop<'a> {
+    pub bundle: &'a Path,
+    pub steps: usize,
+}
+
+/// Plays every case of `input` (see [`StateCases`]), or the bundle's deterministic policy from
+/// each case's state when `closed_loop` is given, and writes the observations and reward terms
+/// to `out`.
+pub fn play_from_states(
+    input: &Path,
+    out: &Path,
+    closed_loop: Option<ClosedLoop>,
+) -> anyhow::Result<()> {
     let text =
         std::fs::read_to_string(input).with_context(|| format!("reading {}", input.display()))?;
     let cases: StateCases =
@@ -208,18 +221,40 @@ pub fn play_from_states(input: &Path, out: &Path) -> anyhow::Result<()> {
             cases.domain
         )
     })?;
-    let mut obs = vec![0.0; env.spec().obs_dim];
+    let mut policy = match &closed_loop {
+        Some(c) => {
+            let policy = std::sync::Arc::new(crate::bundle::load(c.bundle)?);
+            anyhow::ensure!(
+                policy.manifest.domain == cases.domain,
+                "the bundle is for {}, the cases for {}",
+                policy.manifest.domain,
+                cases.domain
+            );
+            Some(crate::policy::Evaluator::new(policy))
+        }
+        None => None,
+    };
+    let spec = env.spec();
+    let zeros = vec![0.0; spec.act_dim];
+    let mut obs = vec![0.0; spec.obs_dim];
+    let mut action = vec![0.0; spec.act_dim];
     let mut played = Vec::with_capacity(cases.cases.len());
     for (k, case) in cases.cases.iter().enumerate() {
         env.set_state(&case.state, &mut obs)
             .with_context(|| format!("case {k}"))?;
         let start = obs.clone();
-        let mut steps = Vec::with_capacity(case.actions.len());
-        for action in &case.actions {
+        let length = closed_loop.as_ref().map_or(case.actions.len(), |c| c.steps);
+        let mut steps = Vec::with_capacity(length);
+        for i in 0..length {
+            match policy.as_mut() {
+                Some(p) => crate::plan::Networks::act(p, &obs, &zeros, &mut action),
+                None => action.clone_from(&case.actions[i]),
+            }
             let t = env
-                .step(action, &mut obs)
+                .step(&action, &mut obs)
                 .with_context(|| format!("case {k}, step {}", steps.len()))?;
             steps.push(PlayedStep {
+                action: action.clone(),
                 obs: obs.clone(),
                 reward: t.reward,
                 reward_terms: env.reward_terms().iter().copied().collect(),

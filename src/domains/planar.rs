@@ -7,8 +7,8 @@ use rand_chacha::ChaCha8Rng;
 use rapier2d::prelude::*;
 
 use super::walker_base::{
-    self, BULLET_LIMIT_SPRING, BULLET_SOLVER_ITERATIONS, BULLET_SUBSTEPS, CONTROL_PERIOD, GRAVITY,
-    MORE, TARGET_X, WalkerEpisode, bullet_drag, clip_observation,
+    self, BULLET_LIMIT_SPRING, BULLET_SUBSTEPS, GRAVITY, MORE, TARGET_X, WalkerEpisode,
+    bullet_drag, clip_observation,
 };
 use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, wrap_angle};
 
@@ -374,10 +374,7 @@ impl Planar {
             gravity: Vector::new(0.0, -GRAVITY),
             ..Default::default()
         };
-        // Bullet's time discretisation and solver iterations.
-        world.integration_parameters.dt = CONTROL_PERIOD / BULLET_SUBSTEPS as f32;
-        world.integration_parameters.num_solver_iterations = 1;
-        world.integration_parameters.num_internal_pgs_iterations = BULLET_SOLVER_ITERATIONS;
+        walker_base::set_bullet_solver!(world.integration_parameters);
         let robot_group =
             InteractionGroups::new(Group::GROUP_1, Group::GROUP_2, InteractionTestMode::And);
         let ground_group =
@@ -546,6 +543,17 @@ impl Planar {
     }
 
     /// Gives every link's body the multibody's current speeds ([`walker_base::link_velocity`]).
+    /// Bullet's joint limits for this substep (`walker_base::bullet_limit_spring`).
+    fn set_limit_springs(&mut self) {
+        let dt = self.world.integration_parameters.dt;
+        if let Some((multibody, _)) = self
+            .multibody
+            .and_then(|h| self.world.multibody_joints.get_mut(h))
+        {
+            walker_base::set_bullet_limit_springs!(multibody, dt, SpringCoefficients::new);
+        }
+    }
+
     fn sync_link_velocities(&mut self) {
         let Some((multibody, _)) = self
             .multibody
@@ -785,6 +793,7 @@ impl Env for Planar {
         let a = self.episode.begin_step(&self.spec, action)?;
         for _ in 0..BULLET_SUBSTEPS {
             self.apply_forces(&a);
+            self.set_limit_springs();
             super::engine(|| self.world.step());
             self.sync_link_velocities();
         }
@@ -838,8 +847,9 @@ impl Planar {
     pub(super) fn drop_for_test(&mut self, seconds: f32) -> f32 {
         self.world.remove_collider(self.ground);
         let zero = vec![0.0; self.spec.act_dim];
-        for _ in 0..(seconds / CONTROL_PERIOD) as usize * BULLET_SUBSTEPS {
+        for _ in 0..(seconds / walker_base::CONTROL_PERIOD) as usize * BULLET_SUBSTEPS {
             self.apply_forces(&zero);
+            self.set_limit_springs();
             super::engine(|| self.world.step());
             self.sync_link_velocities();
         }

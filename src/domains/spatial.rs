@@ -13,8 +13,8 @@ use rapier3d::prelude::*;
 
 use super::scene::{Part, Scene, Shape};
 use super::walker_base::{
-    self, BULLET_LIMIT_SPRING, BULLET_SOLVER_ITERATIONS, BULLET_SUBSTEPS, CONTROL_PERIOD, GRAVITY,
-    MORE, TARGET_X, WalkerEpisode, bullet_drag, clip_observation,
+    self, BULLET_LIMIT_SPRING, BULLET_SUBSTEPS, CONTROL_PERIOD, GRAVITY, MORE, TARGET_X,
+    WalkerEpisode, bullet_drag, clip_observation,
 };
 use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, wrap_angle};
 
@@ -485,10 +485,7 @@ impl Spatial {
             gravity: v(0.0, 0.0, -GRAVITY),
             ..Default::default()
         };
-        // Bullet's time discretisation and solver iterations.
-        world.integration_parameters.dt = CONTROL_PERIOD / BULLET_SUBSTEPS as f32;
-        world.integration_parameters.num_solver_iterations = 1;
-        world.integration_parameters.num_internal_pgs_iterations = BULLET_SOLVER_ITERATIONS;
+        walker_base::set_bullet_solver!(world.integration_parameters);
         // The floor is the last group; link k is group k and collides with the floor and, with
         // self-collision, with every link but itself and its ancestors.
         let floor = Group::GROUP_32;
@@ -603,6 +600,17 @@ impl Spatial {
         self.bodies = bodies;
         self.colliders = colliders;
         self.multibody = joint_handles.first().copied();
+    }
+
+    /// Bullet's joint limits for this substep (`walker_base::bullet_limit_spring`).
+    fn set_limit_springs(&mut self) {
+        let dt = self.world.integration_parameters.dt;
+        if let Some((multibody, _)) = self
+            .multibody
+            .and_then(|h| self.world.multibody_joints.get_mut(h))
+        {
+            walker_base::set_bullet_limit_springs!(multibody, dt, SpringCoefficients::new);
+        }
     }
 
     /// Gives every link's body the multibody's current speeds ([`walker_base::link_velocity`]).
@@ -892,6 +900,7 @@ impl Env for Spatial {
         let a = self.episode.begin_step(&self.spec, action)?;
         for _ in 0..BULLET_SUBSTEPS {
             self.apply_forces(&a);
+            self.set_limit_springs();
             super::engine(|| self.world.step());
             self.sync_link_velocities();
         }
@@ -918,6 +927,7 @@ impl Spatial {
         let steps = (seconds / CONTROL_PERIOD) as usize * BULLET_SUBSTEPS;
         for _ in 0..steps {
             self.apply_forces(&zero);
+            self.set_limit_springs();
             super::engine(|| self.world.step());
             self.sync_link_velocities();
         }

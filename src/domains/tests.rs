@@ -786,3 +786,52 @@ fn planar_walkers_set_to_pybullets_states_observe_and_score_as_pybullet() {
     assert_eq!(obs, before);
     env.step(&[0.0; 3], &mut obs).unwrap();
 }
+
+/// The Hopper in the air with its thigh `past` rad beyond its upper limit and no torque: how
+/// far past the limit the thigh is after each of `steps` steps.
+fn thigh_past_its_limit(past: f32, steps: usize) -> Vec<f32> {
+    let mut env = Planar::named("hopper").unwrap();
+    let (lo, hi) = env.joints_for_test()[0].0;
+    let state = PlanarState {
+        root: [0.0, 2.0, 0.0],
+        root_velocity: [0.0; 3],
+        joints: vec![hi + past, 0.0, 0.0],
+        joint_velocities: vec![0.0; 3],
+    };
+    let mut obs = vec![0.0; env.spec().obs_dim];
+    env.set_state(&state, &mut obs).unwrap();
+    (0..steps)
+        .map(|_| {
+            env.step(&[0.0; 3], &mut obs).unwrap();
+            // obs[8] is 2 (q - mid) / (hi - lo).
+            lo + (obs[8] + 1.0) * (hi - lo) / 2.0 - hi
+        })
+        .collect()
+}
+
+#[test]
+fn a_joint_just_past_its_limit_is_pushed_back_as_in_pybullet() {
+    // PyBullet (HopperBulletEnv-v0, the same state): 0.02 past goes to 0.0054, -0.0091, -0.0237
+    // (Bullet's ERP 0.2 per substep, the correcting speed kept); 0.041 and more stay put.
+    let small = thigh_past_its_limit(0.02, 3);
+    assert!(0.0 < small[0] && small[0] < 0.01, "{small:?}");
+    assert!(small[1] < 0.0 && small[2] < -0.01, "{small:?}");
+    for past in [0.045, 0.2] {
+        let far = thigh_past_its_limit(past, 3);
+        assert!(
+            far.iter().all(|q| (q - past).abs() < 1e-3),
+            "{past}: {far:?}"
+        );
+    }
+}
+
+#[test]
+fn the_limit_spring_is_bullets_erp_with_almost_no_cfm() {
+    let dt = walker_base::CONTROL_PERIOD / walker_base::BULLET_SUBSTEPS as f32;
+    let (frequency, damping) = walker_base::bullet_limit_spring(0.01, dt);
+    let spring = rapier2d::prelude::SpringCoefficients::new(frequency, damping);
+    assert!((spring.erp(dt) - walker_base::BULLET_LIMIT_ERP).abs() < 1e-5);
+    assert!(spring.cfm_coeff(dt) < 1e-3);
+    let stop = walker_base::bullet_limit_spring(walker_base::BULLET_SPLIT_IMPULSE_THRESHOLD, dt);
+    assert_eq!(stop, walker_base::BULLET_LIMIT_SPRING);
+}

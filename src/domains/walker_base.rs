@@ -8,18 +8,80 @@ pub(super) const CONTROL_PERIOD: f32 = 0.0165;
 pub(super) const GRAVITY: f32 = 9.8;
 /// PyBullet's walk target, far ahead on x.
 pub(super) const TARGET_X: f32 = 1000.0;
-/// rapier's joint-limit softness (natural frequency in Hz, damping ratio) that acts like Bullet's
-/// multibody joint limit as PyBullet configures it: the limit stops the joint's speed into it at
-/// once and never pushes a violation back (PyBullet, measured: an Ant ankle reset 0.46 rad outside
-/// its range stays exactly there in free fall with zero torque, and moves only when torque turns
-/// it back in). Frequency 0 makes rapier's ERP 0 (no position correction) and its CFM 0 (a rigid
-/// stop). PyBullet does not clamp a reset's joints into their ranges, and neither do we.
+/// rapier's joint-limit softness (natural frequency in Hz, damping ratio) for a joint further
+/// than `BULLET_SPLIT_IMPULSE_THRESHOLD` past its limit, as Bullet's multibody limit treats it:
+/// the limit stops the joint's speed into it and never pushes the violation back (PyBullet,
+/// measured: an Ant ankle reset 0.46 rad outside its range stays exactly there in free fall with
+/// zero torque). Frequency 0 makes rapier's ERP 0 (no position correction) and its CFM 0 (a
+/// rigid stop). PyBullet does not clamp a reset's joints into their ranges, and neither do we.
 pub(super) const BULLET_LIMIT_SPRING: (f32, f32) = (0.0, 1.0);
+/// Bullet's non-contact ERP (btContactSolverInfo's default 0.2, which PyBullet keeps): the
+/// share of a small joint-limit violation its solver turns into speed back inside, each substep.
+pub(super) const BULLET_LIMIT_ERP: f32 = 0.2;
+/// Bullet's split-impulse penetration threshold (0.04): a joint further than this past its limit
+/// has its positional error split off, which the multibody solver never applies, so it is only
+/// stopped there (`BULLET_LIMIT_SPRING`).
+pub(super) const BULLET_SPLIT_IMPULSE_THRESHOLD: f32 = 0.04;
+
+/// rapier's limit softness (natural frequency in Hz, damping ratio) for a joint `violation`
+/// past its limit, in substeps of `dt` seconds: Bullet's ERP within the split-impulse
+/// threshold, else a stop. rapier's ERP is `dt w / (dt w + 2 zeta)`, its CFM `0.8 / zeta^2` at
+/// ERP 0.2; a large zeta keeps that CFM near Bullet's 0.
+pub(super) fn bullet_limit_spring(violation: f32, dt: f32) -> (f32, f32) {
+    if violation > 0.0 && violation < BULLET_SPLIT_IMPULSE_THRESHOLD {
+        const ZETA: f32 = 100.0;
+        let dt_omega = 2.0 * ZETA * BULLET_LIMIT_ERP / (1.0 - BULLET_LIMIT_ERP);
+        (dt_omega / (dt * std::f32::consts::TAU), ZETA)
+    } else {
+        BULLET_LIMIT_SPRING
+    }
+}
+
+/// Sets every limited joint of a rapier2d or rapier3d multibody to `bullet_limit_spring` for how
+/// far it is past its limits now (the two crates' types differ, the code does not).
+macro_rules! set_bullet_limit_springs {
+    ($multibody:expr, $dt:expr, $spring:path) => {{
+        let multibody = $multibody;
+        for k in 0..multibody.num_links() {
+            let joint = &mut multibody.link_mut(k).expect("a link").joint;
+            let coords = joint.coords();
+            let data = &mut joint.data;
+            let mut violation = 0.0f32;
+            for (i, limits) in data.limits.iter().enumerate() {
+                if data.limit_axes.bits() & (1 << i) != 0 {
+                    violation = violation
+                        .max(coords[i] - limits.max)
+                        .max(limits.min - coords[i]);
+                }
+            }
+            let (frequency, damping) = walker_base::bullet_limit_spring(violation, $dt);
+            data.softness = $spring(frequency, damping);
+        }
+    }};
+}
+pub(super) use set_bullet_limit_springs;
+
 /// PyBullet's numSubSteps: Bullet steps per control period. Each is one rapier step of one solver
 /// substep (rapier's default of four would make sixteen; docs/domains.md).
 pub(super) const BULLET_SUBSTEPS: usize = 4;
 /// PyBullet's numSolverIterations: constraint-solver iterations per Bullet substep.
 pub(super) const BULLET_SOLVER_ITERATIONS: usize = 5;
+/// Bullet's time discretisation and solver on a rapier2d or rapier3d world's integration
+/// parameters: `BULLET_SUBSTEPS` steps per period of one solver substep each, with
+/// `BULLET_SOLVER_ITERATIONS` iterations, and no stabilization pass: Bullet's multibody solver
+/// keeps the speed that corrects a contact's penetration or a small limit violation (its
+/// right-hand side adds them), where rapier's stabilization pass would take it away again.
+macro_rules! set_bullet_solver {
+    ($params:expr) => {{
+        let params = &mut $params;
+        params.dt = walker_base::CONTROL_PERIOD / walker_base::BULLET_SUBSTEPS as f32;
+        params.num_solver_iterations = 1;
+        params.num_internal_pgs_iterations = walker_base::BULLET_SOLVER_ITERATIONS;
+        params.num_internal_stabilization_iterations = 0;
+    }};
+}
+pub(super) use set_bullet_solver;
+
 /// Joint angles and speeds, then feet contacts, follow these 8 "more" values.
 pub(super) const MORE: usize = 8;
 

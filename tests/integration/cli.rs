@@ -279,6 +279,43 @@ fn play_from_states_plays_pybullets_states_and_refuses_bad_ones() {
         );
     }
 
+    // The walker bundle's policy from the same state, closed loop.
+    let closed_loop = |bundle: &str| {
+        prac(&[
+            "play-from-states",
+            input.to_str().unwrap(),
+            "--out",
+            output.to_str().unwrap(),
+            "--policy",
+            &format!(
+                "{}/bundles/{bundle}.safetensors",
+                env!("CARGO_MANIFEST_DIR")
+            ),
+            "--steps",
+            "5",
+        ])
+    };
+    let out = closed_loop("walker");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let played: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&output).unwrap()).unwrap();
+    let steps = played[0]["steps"].as_array().unwrap();
+    assert!(steps.len() == 5 || steps.last().unwrap()["terminated"] == true);
+    let actions: Vec<&serde_json::Value> = steps.iter().map(|s| &s["action"]).collect();
+    assert!(actions.iter().all(|a| *a != &case["action"]), "{actions:?}");
+    assert!(actions.windows(2).any(|w| w[0] != w[1]), "{actions:?}");
+    let wrong_domain = closed_loop("hopper");
+    assert!(!wrong_domain.status.success());
+    let stderr = String::from_utf8(wrong_domain.stderr).unwrap();
+    assert!(
+        stderr.contains("the bundle is for hopper, the cases for walker"),
+        "{stderr}"
+    );
+
     let not_planar = play("ant", &case["state"]);
     assert!(!not_planar.status.success());
     let stderr = String::from_utf8(not_planar.stderr).unwrap();
