@@ -521,8 +521,9 @@ impl Planar {
             .multibody_joints
             .get_mut(multibody)
             .expect("the root was just inserted");
-        // No joint damping: PyBullet has none.
+        // No joint damping: PyBullet has none. Coriolis forces explicit, as Bullet's.
         multibody_ref.damping_mut().fill(0.0);
+        multibody_ref.set_implicit_coriolis(false);
         let mut displacement = vec![0.0; multibody_ref.ndofs()];
         for (&dof, &(_, value, _)) in dofs.iter().zip(&coordinates) {
             displacement[dof] = value;

@@ -584,6 +584,8 @@ impl Spatial {
             multibody.forward_kinematics(&world.bodies, true);
             let mut displacement = vec![0.0; multibody.ndofs()];
             multibody.damping_mut().fill(0.0);
+            // Coriolis and gyroscopic forces explicit, as Bullet's.
+            multibody.set_implicit_coriolis(false);
             for k in 1..self.robot.links.len() {
                 let dof = multibody
                     .link(k)
