@@ -220,8 +220,12 @@ pub fn fit(args: FitArgs) -> anyhow::Result<()> {
         seed: args.seed,
         ..FitOptions::default()
     };
-    let (fitted, report) = fit_model(&policy, &data, &options)?;
+    // The output's folder before the fit, as `prac train` makes its --out's: a fit is minutes.
     let out = args.out.unwrap_or(args.bundle);
+    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let (fitted, report) = fit_model(&policy, &data, &options)?;
     crate::bundle::save(&fitted, &out).with_context(|| format!("writing {}", out.display()))?;
     println!("{}", serde_json::to_string_pretty(&report)?);
     Ok(())

@@ -187,7 +187,8 @@ fn training_with_prac_commits_to_plans_and_fit_model_fits_a_model() {
     }
     let file = dir.path().join("transitions.safetensors");
     data.save(&file).unwrap();
-    let fitted = dir.path().join("fitted.safetensors");
+    // Into a folder that does not exist yet: fit-model makes it.
+    let fitted = dir.path().join("fitted").join("fitted.safetensors");
     let fit = prac()
         .args([
             "fit-model",
