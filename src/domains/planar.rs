@@ -544,17 +544,6 @@ impl Planar {
     }
 
     /// Gives every link's body the multibody's current speeds ([`walker_base::link_velocity`]).
-    /// Bullet's joint limits for this substep (`walker_base::bullet_limit_spring`).
-    fn set_limit_springs(&mut self) {
-        let dt = self.world.integration_parameters.dt;
-        if let Some((multibody, _)) = self
-            .multibody
-            .and_then(|h| self.world.multibody_joints.get_mut(h))
-        {
-            walker_base::set_bullet_limit_springs!(multibody, dt, SpringCoefficients::new);
-        }
-    }
-
     fn sync_link_velocities(&mut self) {
         let Some((multibody, _)) = self
             .multibody
@@ -794,7 +783,11 @@ impl Env for Planar {
         let a = self.episode.begin_step(&self.spec, action)?;
         for _ in 0..BULLET_SUBSTEPS {
             self.apply_forces(&a);
-            self.set_limit_springs();
+            walker_base::set_bullet_limit_springs!(
+                self.world,
+                self.multibody,
+                SpringCoefficients::new
+            );
             super::engine(|| self.world.step());
             self.sync_link_velocities();
         }
@@ -850,7 +843,11 @@ impl Planar {
         let zero = vec![0.0; self.spec.act_dim];
         for _ in 0..(seconds / walker_base::CONTROL_PERIOD) as usize * BULLET_SUBSTEPS {
             self.apply_forces(&zero);
-            self.set_limit_springs();
+            walker_base::set_bullet_limit_springs!(
+                self.world,
+                self.multibody,
+                SpringCoefficients::new
+            );
             super::engine(|| self.world.step());
             self.sync_link_velocities();
         }

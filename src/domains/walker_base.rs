@@ -37,25 +37,29 @@ pub(super) fn bullet_limit_spring(violation: f32, dt: f32) -> (f32, f32) {
     }
 }
 
-/// Sets every limited joint of a rapier2d or rapier3d multibody to `bullet_limit_spring` for how
-/// far it is past its limits now (the two crates' types differ, the code does not).
+/// Sets every limited joint of a walker's rapier2d or rapier3d multibody (`$world`, the handle
+/// `$multibody`) to `bullet_limit_spring` for how far it is past its limits now, for the next
+/// substep (the two crates' types differ, the code does not).
 macro_rules! set_bullet_limit_springs {
-    ($multibody:expr, $dt:expr, $spring:path) => {{
-        let multibody = $multibody;
-        for k in 0..multibody.num_links() {
-            let joint = &mut multibody.link_mut(k).expect("a link").joint;
-            let coords = joint.coords();
-            let data = &mut joint.data;
-            let mut violation = 0.0f32;
-            for (i, limits) in data.limits.iter().enumerate() {
-                if data.limit_axes.bits() & (1 << i) != 0 {
-                    violation = violation
-                        .max(coords[i] - limits.max)
-                        .max(limits.min - coords[i]);
+    ($world:expr, $multibody:expr, $spring:path) => {{
+        let world = &mut $world;
+        let dt = world.integration_parameters.dt;
+        if let Some((multibody, _)) = $multibody.and_then(|h| world.multibody_joints.get_mut(h)) {
+            for k in 0..multibody.num_links() {
+                let joint = &mut multibody.link_mut(k).expect("a link").joint;
+                let coords = joint.coords();
+                let data = &mut joint.data;
+                let mut violation = 0.0f32;
+                for (i, limits) in data.limits.iter().enumerate() {
+                    if data.limit_axes.bits() & (1 << i) != 0 {
+                        violation = violation
+                            .max(coords[i] - limits.max)
+                            .max(limits.min - coords[i]);
+                    }
                 }
+                let (frequency, damping) = walker_base::bullet_limit_spring(violation, dt);
+                data.softness = $spring(frequency, damping);
             }
-            let (frequency, damping) = walker_base::bullet_limit_spring(violation, $dt);
-            data.softness = $spring(frequency, damping);
         }
     }};
 }

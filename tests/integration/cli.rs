@@ -246,15 +246,17 @@ fn play_from_states_plays_pybullets_states_and_refuses_bad_ones() {
             output.to_str().unwrap(),
         ])
     };
-    let out = play("walker", &case["state"]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let played: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&output).unwrap()).unwrap();
-    let start = played[0]["start"].as_array().unwrap();
+    // A successful run's output file.
+    let played = |out: std::process::Output| -> serde_json::Value {
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        serde_json::from_str(&std::fs::read_to_string(&output).unwrap()).unwrap()
+    };
+    let played_from_state = played(play("walker", &case["state"]));
+    let start = played_from_state[0]["start"].as_array().unwrap();
     // The torso's height, speeds and pitch as PyBullet observes them in that state.
     for i in [0, 3, 5, 7] {
         let (ours, theirs) = (start[i].as_f64().unwrap(), case["obs"][i].as_f64().unwrap());
@@ -263,7 +265,7 @@ fn play_from_states_plays_pybullets_states_and_refuses_bad_ones() {
             "obs[{i}] {ours} against {theirs}"
         );
     }
-    let steps = played[0]["steps"].as_array().unwrap();
+    let steps = played_from_state[0]["steps"].as_array().unwrap();
     assert!(!steps.is_empty() && steps.len() <= 3);
     for step in steps {
         let terms = step["reward_terms"].as_object().unwrap();
@@ -295,15 +297,8 @@ fn play_from_states_plays_pybullets_states_and_refuses_bad_ones() {
             "5",
         ])
     };
-    let out = closed_loop("walker");
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let played: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&output).unwrap()).unwrap();
-    let steps = played[0]["steps"].as_array().unwrap();
+    let closed = played(closed_loop("walker"));
+    let steps = closed[0]["steps"].as_array().unwrap();
     assert!(steps.len() == 5 || steps.last().unwrap()["terminated"] == true);
     let actions: Vec<&serde_json::Value> = steps.iter().map(|s| &s["action"]).collect();
     assert!(actions.iter().all(|a| *a != &case["action"]), "{actions:?}");
