@@ -545,20 +545,11 @@ impl Planar {
 
     /// Gives every link's body the multibody's current speeds ([`walker_base::link_velocity`]).
     fn sync_link_velocities(&mut self) {
-        let Some((multibody, _)) = self
-            .multibody
-            .and_then(|h| self.world.multibody_joints.get(h))
-        else {
-            return;
+        let set = |body: &mut RigidBody, v: [f32; 3]| {
+            body.set_linvel(Vector::new(v[0], v[1]), false);
+            body.set_angvel(v[2], false);
         };
-        let speeds = multibody.generalized_velocity();
-        for k in 0..multibody.num_links() {
-            let body = multibody.link(k).expect("a link").rigid_body_handle();
-            let velocity: [f32; 3] = walker_base::link_velocity(multibody.body_jacobian(k), speeds);
-            let body = super::body_mut(&mut self.world.bodies, body);
-            body.set_linvel(Vector::new(velocity[0], velocity[1]), false);
-            body.set_angvel(velocity[2], false);
-        }
+        walker_base::sync_link_velocities!(self.world, self.multibody, 3, set);
     }
 
     /// Starts an episode from PyBullet's state (as the reset would, initial height included) and

@@ -606,20 +606,11 @@ impl Spatial {
 
     /// Gives every link's body the multibody's current speeds ([`walker_base::link_velocity`]).
     fn sync_link_velocities(&mut self) {
-        let Some((multibody, _)) = self
-            .multibody
-            .and_then(|h| self.world.multibody_joints.get(h))
-        else {
-            return;
+        let set = |body: &mut RigidBody, v: [f32; 6]| {
+            body.set_linvel(Vector::new(v[0], v[1], v[2]), false);
+            body.set_angvel(Vector::new(v[3], v[4], v[5]), false);
         };
-        let speeds = multibody.generalized_velocity();
-        for k in 0..multibody.num_links() {
-            let body = multibody.link(k).expect("a link").rigid_body_handle();
-            let velocity: [f32; 6] = walker_base::link_velocity(multibody.body_jacobian(k), speeds);
-            let body = super::body_mut(&mut self.world.bodies, body);
-            body.set_linvel(Vector::new(velocity[0], velocity[1], velocity[2]), false);
-            body.set_angvel(Vector::new(velocity[3], velocity[4], velocity[5]), false);
-        }
+        walker_base::sync_link_velocities!(self.world, self.multibody, 6, set);
     }
 
     /// The robot's mass in kg.

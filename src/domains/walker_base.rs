@@ -65,6 +65,25 @@ macro_rules! set_bullet_limit_springs {
 }
 pub(super) use set_bullet_limit_springs;
 
+/// Gives every link's body of a walker's rapier2d or rapier3d multibody (`$world`, the handle
+/// `$multibody`) the multibody's current speeds (`link_velocity`, `$n` = 3 in 2D, 6 in 3D),
+/// written into each body by `$set(body, velocity)`.
+macro_rules! sync_link_velocities {
+    ($world:expr, $multibody:expr, $n:literal, $set:expr) => {{
+        let world = &mut $world;
+        if let Some((multibody, _)) = $multibody.and_then(|h| world.multibody_joints.get(h)) {
+            let speeds = multibody.generalized_velocity();
+            for k in 0..multibody.num_links() {
+                let handle = multibody.link(k).expect("a link").rigid_body_handle();
+                let velocity: [f32; $n] =
+                    walker_base::link_velocity(multibody.body_jacobian(k), speeds);
+                $set(super::body_mut(&mut world.bodies, handle), velocity);
+            }
+        }
+    }};
+}
+pub(super) use sync_link_velocities;
+
 /// PyBullet's numSubSteps: Bullet steps per control period. Each is one rapier step of one solver
 /// substep (rapier's default of four would make sixteen; docs/domains.md).
 pub(super) const BULLET_SUBSTEPS: usize = 4;
