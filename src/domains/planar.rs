@@ -7,17 +7,13 @@ use rand_chacha::ChaCha8Rng;
 use rapier2d::prelude::*;
 
 use super::walker_base::{
+    Foot,
     self, BULLET_LIMIT_SPRING, BULLET_SUBSTEPS, GRAVITY, MORE, TARGET_X, WalkerEpisode,
     bullet_drag, clip_observation,
 };
 use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, wrap_angle};
 
 const FLOOR_FRICTION: f32 = 0.64;
-/// A link is observed touching the floor when a contact point of the step's last collision
-/// detection is within this distance (m): the distance at which our contact flags agree best
-/// with PyBullet's from matched states (docs/domains.md); rapier's 2 cm prediction distance
-/// flagged a HalfCheetah's front foot in 57% of steps against PyBullet's 20%.
-const CONTACT_DISTANCE: f32 = 0.005;
 
 /// A capsule, endpoints at rest in world (x, z). Capsules only collide: the links' masses are
 /// [`Inertial`]s.
@@ -124,7 +120,7 @@ struct RobotDef {
     /// In order: every parent comes before its children.
     joints: Vec<JointDef>,
     /// Links whose ground contact is observed (PyBullet's foot_list order).
-    feet: Vec<usize>,
+    feet: Vec<Foot>,
     alive: Alive,
     /// Where the root's three joints (x and z slides, the pitch hinge) sit at rest, fixed to the
     /// torso: PyBullet's importer makes each a link there, and they count among the parts.
@@ -146,7 +142,7 @@ fn hopper() -> RobotDef {
             hinge(1, 2, (0.0, 0.6), (-150.0 * deg, 0.0), 75.0, 1.0),
             hinge(2, 3, (0.0, 0.1), (-45.0 * deg, 45.0 * deg), 75.0, 1.0),
         ],
-        feet: vec![3],
+        feet: vec![Foot::new(3, 0.006543)],
         alive: Alive::Upright { min_z: 0.8 },
         root: (0.0, 0.0),
     }
@@ -181,7 +177,7 @@ fn walker() -> RobotDef {
         name: "walker",
         links,
         joints,
-        feet: vec![3, 6],
+        feet: vec![Foot::new(3, 0.004899), Foot::new(6, 0.004899)],
         alive: Alive::Upright { min_z: 0.8 },
         root: (0.0, 0.0),
     }
@@ -271,7 +267,14 @@ fn cheetah() -> RobotDef {
             hinge(5, 6, ffoot, (-3.1, -0.3), 0.9 * 30.0, -1.0),
         ],
         // PyBullet's foot_list: ffoot, fshin, fthigh, bfoot, bshin, bthigh.
-        feet: vec![6, 5, 4, 3, 2, 1],
+        feet: vec![
+            Foot::new(6, 0.004989),
+            Foot::new(5, 0.006239),
+            Foot::new(4, 0.007272),
+            Foot::new(3, 0.005521),
+            Foot::new(2, 0.007904),
+            Foot::new(1, 0.008085),
+        ],
         alive: Alive::NoContact {
             forbidden: vec![1, 2, 4, 5],
         },
@@ -380,8 +383,8 @@ impl Planar {
         let ground_group =
             InteractionGroups::new(Group::GROUP_2, Group::ALL, InteractionTestMode::And);
         let (_, ground) = world.insert(
-            RigidBodyBuilder::fixed().translation(Vector::new(0.0, -0.5)),
-            ColliderBuilder::cuboid(2000.0, 0.5)
+            RigidBodyBuilder::fixed(),
+            ColliderBuilder::halfspace(rapier2d::na::Unit::new_unchecked(Vector::new(0.0, 1.0)))
                 .friction(FLOOR_FRICTION)
                 .collision_groups(ground_group),
         );
@@ -701,13 +704,8 @@ impl Planar {
         ];
         obs[..MORE].copy_from_slice(&more);
         obs[MORE..MORE + self.joint_state.len()].copy_from_slice(&self.joint_state);
-        for (k, &foot) in self.robot.feet.iter().enumerate() {
-            let touching = self.colliders[foot].iter().any(|&c| {
-                self.world.contact_pair(c, self.ground).is_some_and(|pair| {
-                    let points = pair.manifolds().iter().flat_map(|m| &m.points);
-                    points.into_iter().any(|p| p.dist <= CONTACT_DISTANCE)
-                })
-            });
+        for (k, foot) in self.robot.feet.iter().enumerate() {
+            let touching = walker_base::touching_ground!(self, foot);
             obs[MORE + self.joint_state.len() + k] = f32::from(u8::from(touching));
         }
         clip_observation(obs);

@@ -13,6 +13,7 @@ use rapier3d::prelude::*;
 
 use super::scene::{Part, Scene, Shape};
 use super::walker_base::{
+    Foot,
     self, BULLET_LIMIT_SPRING, BULLET_SUBSTEPS, CONTROL_PERIOD, GRAVITY, MORE, TARGET_X,
     WalkerEpisode, bullet_drag, clip_observation,
 };
@@ -91,8 +92,8 @@ struct RobotDef {
     /// Root first; every parent before its children. Links 1.. are the actuated joints in
     /// PyBullet's order.
     links: Vec<LinkDef>,
-    /// Per observed foot (PyBullet's foot_list order): the links whose shapes count as that foot.
-    feet: Vec<usize>,
+    /// Per observed foot (PyBullet's foot_list order): the link whose shapes count as that foot.
+    feet: Vec<Foot>,
     alive: Alive,
     /// PyBullet's initial_z: None takes the torso's height after reset.
     initial_z: Option<f32>,
@@ -175,7 +176,7 @@ fn ant() -> RobotDef {
             )
             .with_mass(vec![inertial(hip + step * 0.5, 7.83155, segment)]),
         );
-        feet.push(links.len() + 1);
+        feet.push(Foot::new(links.len() + 1, 0.009364));
         links.push(
             hinge(
                 hip_link,
@@ -349,7 +350,7 @@ fn humanoid() -> RobotDef {
             // At the foot body's origin: its sphere is placed by `pos`.
             inertial(foot, 1.767146, (0.006627, 0.006627, 0.006627)),
         ]));
-        feet.push(knee);
+        feet.push(Foot::new(knee, 0.004598));
     }
     // Right arm then left: y mirrored, and the model's own axes per side.
     for (side, shoulder1, shoulder2, elbow, range) in [
@@ -510,8 +511,8 @@ impl Spatial {
             })
             .collect();
         let (_, ground) = world.insert(
-            RigidBodyBuilder::fixed().translation(v(0.0, 0.0, -0.5)),
-            ColliderBuilder::cuboid(2000.0, 2000.0, 0.5)
+            RigidBodyBuilder::fixed(),
+            ColliderBuilder::halfspace(rapier3d::na::Unit::new_unchecked(v(0.0, 0.0, 1.0)))
                 .friction(self.robot.friction)
                 .collision_groups(ground_group),
         );
@@ -689,14 +690,6 @@ impl Spatial {
         }
     }
 
-    fn touching(&self, link: usize) -> bool {
-        self.colliders[link].iter().any(|&c| {
-            self.world
-                .contact_pair(c, self.ground)
-                .is_some_and(|pair| pair.has_any_active_contact())
-        })
-    }
-
     /// Joint torques as equal and opposite torques on child and parent (no spurious momentum),
     /// and Bullet's default multibody drag on every link (unless floating freely for a test).
     fn apply_forces(&mut self, action: &[f32]) {
@@ -747,8 +740,9 @@ impl Spatial {
         obs[..MORE].copy_from_slice(&more);
         let joints = self.joint_state.len();
         obs[MORE..MORE + joints].copy_from_slice(&self.joint_state);
-        for (k, &foot) in self.robot.feet.iter().enumerate() {
-            obs[MORE + joints + k] = f32::from(u8::from(self.touching(foot)));
+        for (k, foot) in self.robot.feet.iter().enumerate() {
+            let touching = walker_base::touching_ground!(self, foot);
+            obs[MORE + joints + k] = f32::from(u8::from(touching));
         }
         clip_observation(obs);
         (p.z, pitch)

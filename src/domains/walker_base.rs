@@ -101,9 +101,48 @@ macro_rules! set_bullet_solver {
         params.num_solver_iterations = 1;
         params.num_internal_pgs_iterations = walker_base::BULLET_SOLVER_ITERATIONS;
         params.num_internal_stabilization_iterations = 0;
+        // Bullet finds every contact anew each substep; rapier would keep a pair's points
+        // until it moved 5 cm.
+        params.contact_recycling = false;
     }};
 }
 pub(super) use set_bullet_solver;
+
+/// A link whose ground contact the robot observes, and the distance within which PyBullet
+/// reports it: Bullet keeps a contact point while the surfaces are closer than the link's
+/// contact breaking threshold, 0.02 times its shape's angular motion disc (so 4.6 mm for the
+/// Humanoid's foot, 9.4 mm for the Ant's), and pybullet_envs counts any point as touching.
+/// Measured per link by scripts/conformance/contact_thresholds.py.
+pub(super) struct Foot {
+    pub(super) link: usize,
+    pub(super) contact_threshold: f32,
+}
+
+impl Foot {
+    pub(super) fn new(link: usize, contact_threshold: f32) -> Self {
+        Foot {
+            link,
+            contact_threshold,
+        }
+    }
+}
+
+/// Whether `$foot` (a `Foot`) of a 2D or 3D walker (`$env`, with `world`, `colliders` per link
+/// and `ground`) is touching the floor: a contact point of the last collision detection closer
+/// than its threshold.
+macro_rules! touching_ground {
+    ($env:expr, $foot:expr) => {{
+        let env = &$env;
+        let foot: &walker_base::Foot = $foot;
+        env.colliders[foot.link].iter().any(|&c| {
+            env.world.contact_pair(c, env.ground).is_some_and(|pair| {
+                let mut points = pair.manifolds().iter().flat_map(|m| &m.points);
+                points.any(|p| p.dist < foot.contact_threshold)
+            })
+        })
+    }};
+}
+pub(super) use touching_ground;
 
 /// Joint angles and speeds, then feet contacts, follow these 8 "more" values.
 pub(super) const MORE: usize = 8;
