@@ -7,8 +7,7 @@ use rand_chacha::ChaCha8Rng;
 use rapier2d::prelude::*;
 
 use super::walker_base::{
-    Foot,
-    self, BULLET_LIMIT_SPRING, BULLET_SUBSTEPS, GRAVITY, MORE, TARGET_X, WalkerEpisode,
+    self, BULLET_LIMIT_SPRING, BULLET_SUBSTEPS, Foot, GRAVITY, MORE, TARGET_X, WalkerEpisode,
     bullet_drag, clip_observation,
 };
 use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, wrap_angle};

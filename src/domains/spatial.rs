@@ -13,8 +13,7 @@ use rapier3d::prelude::*;
 
 use super::scene::{Part, Scene, Shape};
 use super::walker_base::{
-    Foot,
-    self, BULLET_LIMIT_SPRING, BULLET_SUBSTEPS, CONTROL_PERIOD, GRAVITY, MORE, TARGET_X,
+    self, BULLET_LIMIT_SPRING, BULLET_SUBSTEPS, CONTROL_PERIOD, Foot, GRAVITY, MORE, TARGET_X,
     WalkerEpisode, bullet_drag, clip_observation,
 };
 use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, wrap_angle};

@@ -23,15 +23,26 @@ pub(super) const BULLET_LIMIT_ERP: f32 = 0.2;
 /// stopped there (`BULLET_LIMIT_SPRING`).
 pub(super) const BULLET_SPLIT_IMPULSE_THRESHOLD: f32 = 0.04;
 
-/// rapier's limit softness (natural frequency in Hz, damping ratio) for a joint `violation`
-/// past its limit, in substeps of `dt` seconds: Bullet's ERP within the split-impulse
-/// threshold, else a stop. rapier's ERP is `dt w / (dt w + 2 zeta)`, its CFM `0.8 / zeta^2` at
-/// ERP 0.2; a large zeta keeps that CFM near Bullet's 0.
+/// PyBullet's contact ERP (its default `m_erp2`, 0.08): the share of a penetration the
+/// multibody solver turns into speed out of the floor each substep, kept as speed (Bullet's
+/// multibody contacts have no split impulse).
+pub(super) const BULLET_CONTACT_ERP: f32 = 0.08;
+
+/// rapier's softness (natural frequency in Hz, damping ratio) that corrects `erp` of an error
+/// each substep of `dt` seconds with almost no CFM, as Bullet's solver does: rapier's ERP is
+/// `dt w / (dt w + 2 zeta)`, its CFM `0.8 / zeta^2` at ERP 0.2; a large zeta keeps that CFM near
+/// Bullet's 0.
+pub(super) fn bullet_erp_spring(erp: f32, dt: f32) -> (f32, f32) {
+    const ZETA: f32 = 100.0;
+    let dt_omega = 2.0 * ZETA * erp / (1.0 - erp);
+    (dt_omega / (dt * std::f32::consts::TAU), ZETA)
+}
+
+/// rapier's limit softness for a joint `violation` past its limit, in substeps of `dt` seconds:
+/// Bullet's ERP within the split-impulse threshold, else a stop.
 pub(super) fn bullet_limit_spring(violation: f32, dt: f32) -> (f32, f32) {
     if violation > 0.0 && violation < BULLET_SPLIT_IMPULSE_THRESHOLD {
-        const ZETA: f32 = 100.0;
-        let dt_omega = 2.0 * ZETA * BULLET_LIMIT_ERP / (1.0 - BULLET_LIMIT_ERP);
-        (dt_omega / (dt * std::f32::consts::TAU), ZETA)
+        bullet_erp_spring(BULLET_LIMIT_ERP, dt)
     } else {
         BULLET_LIMIT_SPRING
     }
@@ -93,7 +104,8 @@ pub(super) const BULLET_SOLVER_ITERATIONS: usize = 5;
 /// parameters: `BULLET_SUBSTEPS` steps per period of one solver substep each, with
 /// `BULLET_SOLVER_ITERATIONS` iterations, and no stabilization pass: Bullet's multibody solver
 /// keeps the speed that corrects a contact's penetration or a small limit violation (its
-/// right-hand side adds them), where rapier's stabilization pass would take it away again.
+/// right-hand side adds them), where rapier's stabilization pass would take it away again;
+/// contacts corrected at Bullet's contact ERP.
 macro_rules! set_bullet_solver {
     ($params:expr) => {{
         let params = &mut $params;
@@ -104,6 +116,12 @@ macro_rules! set_bullet_solver {
         // Bullet finds every contact anew each substep; rapier would keep a pair's points
         // until it moved 5 cm.
         params.contact_recycling = false;
+        // Bullet's contact ERP, floor or not, and no cap on the speed it gives.
+        let (frequency, damping) =
+            walker_base::bullet_erp_spring(walker_base::BULLET_CONTACT_ERP, params.dt);
+        params.contact_softness = SpringCoefficients::new(frequency, damping);
+        params.static_contact_softness = params.contact_softness;
+        params.normalized_max_corrective_velocity = f32::MAX;
     }};
 }
 pub(super) use set_bullet_solver;
