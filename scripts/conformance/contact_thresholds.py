@@ -8,22 +8,14 @@ closest point is a given distance above the floor, runs collision detection, and
 distance between reported and not reported. Prints JSON: robot -> {link: threshold in m}; the
 values are those in src/domains (`Foot::new`).
 
-Usage: python contact_thresholds.py [--domains hopper,walker,cheetah,ant,humanoid]
+Usage: PYTHONPATH=scripts/conformance python contact_thresholds.py [--domains hopper,walker,cheetah,ant,humanoid]
 """
 
 import argparse
 import json
 
 import gym
-import pybullet_envs  # noqa: F401  (registers the Bullet environments with gym)
-
-ENVS = {
-    "hopper": "HopperBulletEnv-v0",
-    "walker": "Walker2DBulletEnv-v0",
-    "cheetah": "HalfCheetahBulletEnv-v0",
-    "ant": "AntBulletEnv-v0",
-    "humanoid": "HumanoidBulletEnv-v0",
-}
+from pybullet_side import ENVS
 
 
 def reported_at(env, body, link, floor, gap):
