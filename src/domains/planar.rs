@@ -554,6 +554,15 @@ impl Planar {
         walker_base::sync_link_velocities!(self.world, self.multibody, 3, set);
     }
 
+    /// One Bullet substep under `torques`: forces, this substep's limit springs, the physics
+    /// step, and the links' speeds from the multibody's.
+    fn bullet_substep(&mut self, torques: &[f32]) {
+        self.apply_forces(torques);
+        walker_base::set_bullet_limit_springs!(self.world, self.multibody);
+        super::engine(|| self.world.step());
+        self.sync_link_velocities();
+    }
+
     /// Starts an episode from PyBullet's state (as the reset would, initial height included) and
     /// writes its observation. A state of the wrong shape or with a non-finite value changes
     /// nothing.
@@ -770,14 +779,7 @@ impl Env for Planar {
         check_obs_len(&self.spec, obs)?;
         let a = self.episode.begin_step(&self.spec, action)?;
         for _ in 0..BULLET_SUBSTEPS {
-            self.apply_forces(&a);
-            walker_base::set_bullet_limit_springs!(
-                self.world,
-                self.multibody,
-                SpringCoefficients::new
-            );
-            super::engine(|| self.world.step());
-            self.sync_link_velocities();
+            self.bullet_substep(&a);
         }
         let (z, pitch) = self.observe(obs);
         let (alive, ends) = self.alive_bonus(z, pitch, &obs[MORE + self.joint_state.len()..]);
@@ -830,14 +832,7 @@ impl Planar {
         self.world.remove_collider(self.ground);
         let zero = vec![0.0; self.spec.act_dim];
         for _ in 0..(seconds / walker_base::CONTROL_PERIOD) as usize * BULLET_SUBSTEPS {
-            self.apply_forces(&zero);
-            walker_base::set_bullet_limit_springs!(
-                self.world,
-                self.multibody,
-                SpringCoefficients::new
-            );
-            super::engine(|| self.world.step());
-            self.sync_link_velocities();
+            self.bullet_substep(&zero);
         }
         self.torso().linvel().y
     }

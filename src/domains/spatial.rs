@@ -613,6 +613,15 @@ impl Spatial {
         walker_base::sync_link_velocities!(self.world, self.multibody, 6, set);
     }
 
+    /// One Bullet substep under `torques`: forces, this substep's limit springs, the physics
+    /// step, and the links' speeds from the multibody's.
+    fn bullet_substep(&mut self, torques: &[f32]) {
+        self.apply_forces(torques);
+        walker_base::set_bullet_limit_springs!(self.world, self.multibody);
+        super::engine(|| self.world.step());
+        self.sync_link_velocities();
+    }
+
     /// The robot's mass in kg.
     pub fn total_mass(&self) -> f32 {
         self.bodies
@@ -874,14 +883,7 @@ impl Env for Spatial {
         check_obs_len(&self.spec, obs)?;
         let a = self.episode.begin_step(&self.spec, action)?;
         for _ in 0..BULLET_SUBSTEPS {
-            self.apply_forces(&a);
-            walker_base::set_bullet_limit_springs!(
-                self.world,
-                self.multibody,
-                SpringCoefficients::new
-            );
-            super::engine(|| self.world.step());
-            self.sync_link_velocities();
+            self.bullet_substep(&a);
         }
         let (z, _pitch) = self.observe(obs);
         let alive = if z > self.robot.alive.min_z {
@@ -905,14 +907,7 @@ impl Spatial {
         let zero = vec![0.0; self.spec.act_dim];
         let steps = (seconds / CONTROL_PERIOD) as usize * BULLET_SUBSTEPS;
         for _ in 0..steps {
-            self.apply_forces(&zero);
-            walker_base::set_bullet_limit_springs!(
-                self.world,
-                self.multibody,
-                SpringCoefficients::new
-            );
-            super::engine(|| self.world.step());
-            self.sync_link_velocities();
+            self.bullet_substep(&zero);
         }
         self.torso().linvel().z
     }

@@ -50,9 +50,10 @@ pub(super) fn bullet_limit_spring(violation: f32, dt: f32) -> (f32, f32) {
 
 /// Sets every limited joint of a walker's rapier2d or rapier3d multibody (`$world`, the handle
 /// `$multibody`) to `bullet_limit_spring` for how far it is past its limits now, for the next
-/// substep (the two crates' types differ, the code does not).
+/// substep (the two crates' types differ, the code does not; `SpringCoefficients` is the
+/// caller's crate's).
 macro_rules! set_bullet_limit_springs {
-    ($world:expr, $multibody:expr, $spring:path) => {{
+    ($world:expr, $multibody:expr) => {{
         let world = &mut $world;
         let dt = world.integration_parameters.dt;
         if let Some((multibody, _)) = $multibody.and_then(|h| world.multibody_joints.get_mut(h)) {
@@ -69,7 +70,7 @@ macro_rules! set_bullet_limit_springs {
                     }
                 }
                 let (frequency, damping) = walker_base::bullet_limit_spring(violation, dt);
-                data.softness = $spring(frequency, damping);
+                data.softness = SpringCoefficients::new(frequency, damping);
             }
         }
     }};
