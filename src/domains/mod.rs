@@ -4,6 +4,7 @@
 //! (rapier2d) and the 3D walkers `ant` and `humanoid` (rapier3d multibodies).
 
 mod episode;
+mod floor_contacts;
 mod lander;
 mod pendulum;
 mod planar;

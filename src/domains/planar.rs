@@ -6,6 +6,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rapier2d::prelude::*;
 
+use super::floor_contacts::{self, BoundedShape, FloorContacts};
 use super::walker_base::{
     self, BULLET_LIMIT_SPRING, BULLET_SUBSTEPS, Foot, GRAVITY, MORE, TARGET_X, WalkerEpisode,
     bullet_drag, clip_observation,
@@ -13,8 +14,11 @@ use super::walker_base::{
 use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, wrap_angle};
 
 const FLOOR_FRICTION: f32 = 0.64;
+/// The floor's normal, as the floor contacts take it (the plane is x-y, y up).
+const UP: nalgebra::Vector3<f32> = nalgebra::Vector3::new(0.0, 1.0, 0.0);
 
-/// A capsule, endpoints at rest in world (x, z). Capsules only collide: the links' masses are
+/// A capsule, endpoints at rest in world (x, z), `a` the end Bullet takes as the lowest point on
+/// a tie (a `fromto` geom's first). Capsules only collide: the links' masses are
 /// [`Inertial`]s.
 struct Capsule {
     a: (f32, f32),
@@ -65,11 +69,12 @@ fn mj_capsule(
     radius: f32,
 ) -> Capsule {
     let center = (origin.0 + pos.0, origin.1 + pos.1);
-    // A rotation about +y turns the capsule's z axis to (sin, cos) in (x, z).
+    // A rotation about +y turns the capsule's z axis to (sin, cos) in (x, z). Bullet's
+    // btCapsuleShapeZ offers its +z end first as the lowest point, as `a` is offered.
     let axis = (angle.sin() * half_length, angle.cos() * half_length);
     Capsule {
-        a: (center.0 - axis.0, center.1 - axis.1),
-        b: (center.0 + axis.0, center.1 + axis.1),
+        a: (center.0 + axis.0, center.1 + axis.1),
+        b: (center.0 - axis.0, center.1 - axis.1),
         radius,
     }
 }
@@ -309,6 +314,8 @@ pub struct Planar {
     joint_state: Vec<f32>,
     /// The robot's multibody (any of its joints names it).
     multibody: Option<MultibodyJointHandle>,
+    /// The links' contacts with the floor, as Bullet keeps them.
+    floor_contacts: FloorContacts,
 }
 
 impl Planar {
@@ -361,6 +368,7 @@ impl Planar {
             episode,
             joint_state: vec![0.0; 2 * n],
             multibody: None,
+            floor_contacts: FloorContacts::new((0, 0), UP),
         };
         env.build(&PlanarState {
             joints: vec![0.0; n],
@@ -385,8 +393,10 @@ impl Planar {
             RigidBodyBuilder::fixed(),
             ColliderBuilder::halfspace(rapier2d::na::Unit::new_unchecked(Vector::new(0.0, 1.0)))
                 .friction(FLOOR_FRICTION)
-                .collision_groups(ground_group),
+                .collision_groups(ground_group)
+                .active_hooks(ActiveHooks::MODIFY_SOLVER_CONTACTS),
         );
+        let mut floor_contacts = FloorContacts::new(ground.into_raw_parts(), UP);
         // The links at rest; the multibody below poses them from the state.
         let origins: Vec<Vector> = self
             .robot
@@ -409,6 +419,7 @@ impl Planar {
                     ))
                     .can_sleep(false),
             );
+            let threshold = self.contact_breaking_threshold(bodies.len());
             let mut handles = Vec::new();
             for capsule in &link.capsules {
                 let a = Vector::new(capsule.a.0, capsule.a.1) - *origin;
@@ -422,6 +433,9 @@ impl Planar {
                         Some(body),
                     ),
                 );
+            }
+            for &handle in &handles {
+                floor_contacts.add_link_collider(handle.into_raw_parts(), threshold);
             }
             // Now, not at the first step: reset reads the centres of mass.
             world.bodies[body].recompute_mass_properties_from_colliders(&world.colliders);
@@ -542,6 +556,7 @@ impl Planar {
         self.bodies = bodies;
         self.colliders = colliders;
         self.multibody = Some(multibody);
+        self.floor_contacts = floor_contacts;
         self.sync_link_velocities();
     }
 
@@ -554,12 +569,43 @@ impl Planar {
         walker_base::sync_link_velocities!(self.world, self.multibody, 3, set);
     }
 
+    /// Link `k`'s contact breaking threshold: measured in PyBullet for an observed foot, else
+    /// from its capsules as Bullet bounds them.
+    fn contact_breaking_threshold(&self, k: usize) -> f32 {
+        if let Some(foot) = self.robot.feet.iter().find(|f| f.link == k) {
+            return foot.contact_threshold;
+        }
+        self.bounded_threshold(k)
+    }
+
+    /// Each observed foot's contact threshold as measured in PyBullet and as its shapes give it.
+    #[cfg(test)]
+    pub(super) fn feet_thresholds(&self) -> Vec<(f32, f32)> {
+        let feet = self.robot.feet.iter();
+        feet.map(|f| (f.contact_threshold, self.bounded_threshold(f.link)))
+            .collect()
+    }
+
+    /// Link `k`'s contact breaking threshold from its capsules as Bullet bounds them.
+    fn bounded_threshold(&self, k: usize) -> f32 {
+        let link = &self.robot.links[k];
+        let com = link.inertial.com;
+        let at = |(x, z): (f32, f32)| nalgebra::Vector3::new(x - com.0, 0.0, z - com.1);
+        let shapes: Vec<BoundedShape> = link
+            .capsules
+            .iter()
+            .map(|c| BoundedShape::Capsule(at(c.a), at(c.b), c.radius))
+            .collect();
+        floor_contacts::contact_breaking_threshold(&shapes)
+    }
+
     /// One Bullet substep under `torques`: forces, this substep's limit springs, the physics
     /// step, and the links' speeds from the multibody's.
     fn bullet_substep(&mut self, torques: &[f32]) {
         self.apply_forces(torques);
         walker_base::set_bullet_limit_springs!(self.world, self.multibody);
-        super::engine(|| self.world.step());
+        self.floor_contacts.next_substep();
+        super::engine(|| self.world.step_with_events(&self.floor_contacts, &()));
         self.sync_link_velocities();
     }
 

@@ -11,6 +11,7 @@ use rand_chacha::ChaCha8Rng;
 use rapier3d::glamx::EulerRot;
 use rapier3d::prelude::*;
 
+use super::floor_contacts::{self, BoundedShape, FloorContacts};
 use super::scene::{Part, Scene, Shape};
 use super::walker_base::{
     self, BULLET_LIMIT_SPRING, BULLET_SUBSTEPS, CONTROL_PERIOD, Foot, GRAVITY, MORE, TARGET_X,
@@ -26,6 +27,8 @@ const FLOOR_FRICTION: f32 = 0.8;
 /// Links that only chain several hinges of one MuJoCo body: no shape, and a token mass (massless
 /// in PyBullet) so that rapier's multibody gives the link a well-defined inertia.
 const CHAIN_LINK_MASS: f32 = 0.01;
+/// The floor's normal, as the floor contacts take it.
+const UP: nalgebra::Vector3<f32> = nalgebra::Vector3::new(0.0, 0.0, 1.0);
 
 #[derive(Clone, Copy)]
 enum Geom {
@@ -435,6 +438,8 @@ pub struct Spatial {
     drag: bool,
     /// The robot's multibody (any of its joints names it).
     multibody: Option<MultibodyJointHandle>,
+    /// The links' contacts with the floor, as Bullet keeps them.
+    floor_contacts: FloorContacts,
 }
 
 impl Spatial {
@@ -474,6 +479,7 @@ impl Spatial {
             joint_state: vec![0.0; 2 * n],
             drag: true,
             multibody: None,
+            floor_contacts: FloorContacts::new((0, 0), UP),
         };
         env.build(&vec![0.0; n]);
         env
@@ -513,11 +519,14 @@ impl Spatial {
             RigidBodyBuilder::fixed(),
             ColliderBuilder::halfspace(rapier3d::na::Unit::new_unchecked(v(0.0, 0.0, 1.0)))
                 .friction(self.robot.friction)
-                .collision_groups(ground_group),
+                .collision_groups(ground_group)
+                .active_hooks(ActiveHooks::MODIFY_SOLVER_CONTACTS),
         );
+        let mut floor_contacts = FloorContacts::new(ground.into_raw_parts(), UP);
         let mut bodies = Vec::new();
         let mut colliders = Vec::new();
-        for (link, &groups) in self.robot.links.iter().zip(&link_groups) {
+        for (k, (link, &groups)) in self.robot.links.iter().zip(&link_groups).enumerate() {
+            let threshold = self.contact_breaking_threshold(k);
             let mut builder = RigidBodyBuilder::dynamic()
                 .translation(link.origin)
                 .can_sleep(false);
@@ -552,7 +561,10 @@ impl Spatial {
                         Some(body),
                     )
                 })
-                .collect();
+                .collect::<Vec<_>>();
+            for &handle in &handles {
+                floor_contacts.add_link_collider(handle.into_raw_parts(), threshold);
+            }
             // Now, not at the first step: reset reads the centres of mass.
             world.bodies[body].recompute_mass_properties_from_colliders(&world.colliders);
             bodies.push(body);
@@ -602,6 +614,50 @@ impl Spatial {
         self.bodies = bodies;
         self.colliders = colliders;
         self.multibody = joint_handles.first().copied();
+        self.floor_contacts = floor_contacts;
+    }
+
+    /// Link `k`'s contact breaking threshold: measured in PyBullet for an observed foot, else
+    /// from its geoms as Bullet bounds them about its centre of mass.
+    fn contact_breaking_threshold(&self, k: usize) -> f32 {
+        if let Some(foot) = self.robot.feet.iter().find(|f| f.link == k) {
+            return foot.contact_threshold;
+        }
+        self.bounded_threshold(k)
+    }
+
+    /// Each observed foot's contact threshold as measured in PyBullet and as its shapes give it.
+    #[cfg(test)]
+    pub(super) fn feet_thresholds(&self) -> Vec<(f32, f32)> {
+        let feet = self.robot.feet.iter();
+        feet.map(|f| (f.contact_threshold, self.bounded_threshold(f.link)))
+            .collect()
+    }
+
+    /// Link `k`'s contact breaking threshold from its geoms as Bullet bounds them.
+    fn bounded_threshold(&self, k: usize) -> f32 {
+        let link = &self.robot.links[k];
+        let mass: f32 = link.inertials.iter().map(|i| i.mass).sum();
+        let com = if mass > 0.0 {
+            link.inertials
+                .iter()
+                .fold(Vector::ZERO, |sum, i| sum + i.com * (i.mass / mass))
+        } else {
+            link.origin
+        };
+        let at = |p: Vector| {
+            let d = p - com;
+            nalgebra::Vector3::new(d.x, d.y, d.z)
+        };
+        let shapes: Vec<BoundedShape> = link
+            .geoms
+            .iter()
+            .map(|geom| match *geom {
+                Geom::Capsule(a, b, r) => BoundedShape::Capsule(at(a), at(b), r),
+                Geom::Sphere(c, r) => BoundedShape::Sphere(at(c), r),
+            })
+            .collect();
+        floor_contacts::contact_breaking_threshold(&shapes)
     }
 
     /// Gives every link's body the multibody's current speeds ([`walker_base::link_velocity`]).
@@ -618,7 +674,8 @@ impl Spatial {
     fn bullet_substep(&mut self, torques: &[f32]) {
         self.apply_forces(torques);
         walker_base::set_bullet_limit_springs!(self.world, self.multibody);
-        super::engine(|| self.world.step());
+        self.floor_contacts.next_substep();
+        super::engine(|| self.world.step_with_events(&self.floor_contacts, &()));
         self.sync_link_velocities();
     }
 

@@ -23,10 +23,11 @@ pub(super) const BULLET_LIMIT_ERP: f32 = 0.2;
 /// stopped there (`BULLET_LIMIT_SPRING`).
 pub(super) const BULLET_SPLIT_IMPULSE_THRESHOLD: f32 = 0.04;
 
-/// PyBullet's contact ERP (its default `m_erp2`, 0.08): the share of a penetration the
-/// multibody solver turns into speed out of the floor each substep, kept as speed (Bullet's
-/// multibody contacts have no split impulse).
-pub(super) const BULLET_CONTACT_ERP: f32 = 0.08;
+/// The contact ERP pybullet_envs sets (`setDefaultContactERP(0.9)` in its scene's World, over
+/// Bullet's default `m_erp2` of 0.08): the share of a penetration the multibody solver turns
+/// into speed out of the floor each substep, kept as speed (Bullet's multibody contacts have no
+/// split impulse).
+pub(super) const BULLET_CONTACT_ERP: f32 = 0.9;
 
 /// rapier's softness (natural frequency in Hz, damping ratio) that corrects `erp` of an error
 /// each substep of `dt` seconds with almost no CFM, as Bullet's solver does: rapier's ERP is
@@ -123,6 +124,9 @@ macro_rules! set_bullet_solver {
         params.contact_softness = SpringCoefficients::new(frequency, damping);
         params.static_contact_softness = params.contact_softness;
         params.normalized_max_corrective_velocity = f32::MAX;
+        // Bullet starts multibody contacts from zero impulse each substep (its articulated
+        // warm starting is off unless asked for).
+        params.warmstart_coefficient = 0.0;
     }};
 }
 pub(super) use set_bullet_solver;
