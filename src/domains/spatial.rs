@@ -70,6 +70,8 @@ struct LinkDef {
     /// Limits in radians and the torque of a unit action.
     range: (f32, f32),
     torque: f32,
+    /// The length of the model's hinge axis, which Bullet does not normalise (1 for the root).
+    axis_length: f32,
     /// Shapes, which only collide: the mass is `inertials`.
     geoms: Vec<Geom>,
     /// None for a link that only chains hinges of one MuJoCo body.
@@ -128,6 +130,7 @@ fn hinge(
         parent: Some(parent),
         origin,
         axis: axis.normalize(),
+        axis_length: axis.length(),
         range: (range_deg.0 * deg, range_deg.1 * deg),
         torque,
         geoms,
@@ -195,6 +198,7 @@ fn ant() -> RobotDef {
         parent: None,
         origin: torso,
         axis: Vector::ZERO,
+        axis_length: 1.0,
         range: (0.0, 0.0),
         torque: 0.0,
         geoms: torso_geoms,
@@ -230,6 +234,7 @@ fn humanoid() -> RobotDef {
         parent: None,
         origin: torso,
         axis: Vector::ZERO,
+        axis_length: 1.0,
         range: (0.0, 0.0),
         torque: 0.0,
         geoms: vec![
@@ -440,6 +445,10 @@ pub struct Spatial {
     multibody: Option<MultibodyJointHandle>,
     /// The links' contacts with the floor, as Bullet keeps them.
     floor_contacts: FloorContacts,
+    /// Per link, its joint's angle before the substep, and the multibody's displacement
+    /// (reused: a step allocates nothing).
+    angles_before: Vec<f32>,
+    displacement: Vec<f32>,
 }
 
 impl Spatial {
@@ -480,6 +489,8 @@ impl Spatial {
             drag: true,
             multibody: None,
             floor_contacts: FloorContacts::new((0, 0), UP),
+            angles_before: Vec::new(),
+            displacement: Vec::new(),
         };
         env.build(&vec![0.0; n]);
         env
@@ -615,6 +626,52 @@ impl Spatial {
         self.colliders = colliders;
         self.multibody = joint_handles.first().copied();
         self.floor_contacts = floor_contacts;
+        self.angles_before = vec![0.0; self.robot.links.len()];
+        let ndofs = self
+            .multibody
+            .and_then(|h| self.world.multibody_joints.get(h));
+        self.displacement = vec![0.0; ndofs.map_or(0, |(m, _)| m.ndofs())];
+    }
+
+    /// Bullet's multibody takes a hinge's model axis as given, not normalised: a joint whose
+    /// axis is longer than 1 (the Ant's ankles, sqrt 2; the Humanoid's arms, sqrt 2 and sqrt 6)
+    /// spins its link `axis_length` times its joint speed, which makes it that much heavier to
+    /// turn (torques above, speeds observed), while the link turns by the joint angle about the
+    /// unit axis. rapier turns the link as far as it spins; this takes back the difference
+    /// after each substep (`before` holds the angles from before it).
+    fn turn_joints_as_bullet(&mut self, before: bool) {
+        let links = &self.robot.links;
+        if links.iter().all(|l| l.axis_length == 1.0) {
+            return;
+        }
+        let world = &mut self.world;
+        let Some((multibody, _)) = self
+            .multibody
+            .and_then(|h| world.multibody_joints.get_mut(h))
+        else {
+            return;
+        };
+        // A hinge's free coordinate is its angle about its local x axis.
+        const ANGLE: usize = 3;
+        self.displacement.fill(0.0);
+        for (k, link) in links.iter().enumerate().skip(1) {
+            let Some(joint_link) = multibody.link(k) else {
+                continue;
+            };
+            let angle = joint_link.joint.coords()[ANGLE];
+            if before {
+                self.angles_before[k] = angle;
+            } else if link.axis_length != 1.0 {
+                let turned = angle - self.angles_before[k];
+                self.displacement[joint_link.assembly_id()] =
+                    turned * (1.0 / link.axis_length - 1.0);
+            }
+        }
+        if !before {
+            multibody.apply_displacements(&self.displacement);
+            multibody.forward_kinematics(&world.bodies, true);
+            multibody.update_rigid_bodies(&mut world.bodies, false);
+        }
     }
 
     /// Link `k`'s contact breaking threshold: measured in PyBullet for an observed foot, else
@@ -675,7 +732,9 @@ impl Spatial {
         self.apply_forces(torques);
         walker_base::set_bullet_limit_springs!(self.world, self.multibody);
         self.floor_contacts.next_substep();
+        self.turn_joints_as_bullet(true);
         super::engine(|| self.world.step_with_events(&self.floor_contacts, &()));
+        super::engine(|| self.turn_joints_as_bullet(false));
         self.sync_link_velocities();
     }
 
@@ -749,7 +808,8 @@ impl Spatial {
                 relative.x * link.axis.x + relative.y * link.axis.y + relative.z * link.axis.z;
             let q = wrap_angle(f64::from(2.0 * along.atan2(relative.w))) as f32;
             let world_axis = *child.rotation() * link.axis;
-            let qdot = (child.angvel() - parent.angvel()).dot(world_axis);
+            // Bullet's joint speed: the link spins `axis_length` times faster (below).
+            let qdot = (child.angvel() - parent.angvel()).dot(world_axis) / link.axis_length;
             self.joint_state[2 * (k - 1)..2 * k]
                 .copy_from_slice(&walker_base::joint_state(q, qdot, link.range));
         }
@@ -777,7 +837,8 @@ impl Spatial {
             let parent = self.bodies[link.parent.unwrap_or(0)];
             let child = self.bodies[k];
             let world_axis = *self.world.bodies[child].rotation() * link.axis;
-            let tau = world_axis * (link.torque * action[k - 1]);
+            // The joint's generalised force, on Bullet's axis of length `axis_length`.
+            let tau = world_axis * (link.torque * action[k - 1] / link.axis_length);
             super::body_mut(&mut self.world.bodies, child).add_torque(tau, true);
             super::body_mut(&mut self.world.bodies, parent).add_torque(-tau, true);
         }

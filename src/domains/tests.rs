@@ -935,3 +935,29 @@ fn bullets_bounds_give_the_feet_thresholds_measured_in_pybullet() {
         }
     }
 }
+
+#[test]
+fn an_ankle_on_its_long_axis_turns_as_in_pybullet() {
+    // PyBullet (AntBulletEnv-v0) set to our reset of seed 1000, the first ankle (axis (-1, 1, 0),
+    // which Bullet does not normalise) under a full torque for one step: its observed angle
+    // moves by 0.0345 and its speed reads 0.204; the hip (axis (0, 0, 1)) 0.0337 and 0.228.
+    // rapier's unit axis turned the ankle twice as far (0.069, 0.408).
+    for (joint, moved, speed) in [(1, 0.0345, 0.204), (0, 0.0337, 0.228)] {
+        let mut env = Spatial::ant();
+        let mut obs = vec![0.0; env.spec().obs_dim];
+        env.reset(1000, &mut obs).unwrap();
+        let start = obs[walker_base::MORE + 2 * joint];
+        let mut action = [0.0; 8];
+        action[joint] = 1.0;
+        env.step(&action, &mut obs).unwrap();
+        let (position, rate) = (
+            obs[walker_base::MORE + 2 * joint],
+            obs[walker_base::MORE + 2 * joint + 1],
+        );
+        assert!(
+            (position - start - moved).abs() < 5e-4 && (rate - speed).abs() < 2e-3,
+            "joint {joint}: moved {}, speed {rate}",
+            position - start
+        );
+    }
+}
