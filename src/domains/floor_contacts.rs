@@ -1,9 +1,12 @@
 //! The floor's contacts as Bullet keeps them for PyBullet's walkers, through rapier's
 //! contact-modification hook. Bullet collides a link's capsule or sphere with the floor plane
 //! by adding one point per substep, the shape's lowest, to a persistent manifold of at most four
-//! that it refreshes each substep and that the solver takes whole. A capsule landing level thus
-//! touches down at one end first and tilts onto the other a substep later, where rapier's
-//! manifold holds both ends at once. Facts from bullet3 (btConvexPlaneCollisionAlgorithm,
+//! that it refreshes each substep and whose every point the solver takes. A capsule landing level
+//! thus touches down at one end first and tilts onto the other a substep later, where rapier's
+//! manifold holds both ends at once. Each point we hand the solver stands in for one of rapier's
+//! (its warm-start and lever-arm slot), so a pair gets at most as many as rapier found within its
+//! 2 cm prediction distance (the deepest): one for a sphere, where Bullet's rolling ball could
+//! hold several. Facts from bullet3 (btConvexPlaneCollisionAlgorithm,
 //! btPersistentManifold, btMultiSphereShape, BulletMJCFImporter); docs/domains.md measures what
 //! they change.
 
@@ -81,6 +84,8 @@ impl FloorManifold {
     }
 
     /// btPersistentManifold::refreshContactPoints: each point's distance at the link's pose,
+    /// before the new point joins, as Bullet's compound shapes (every MJCF link whose geom is
+    /// off its centre of mass) refresh their children's manifolds;
     /// then, last first, those beyond the threshold or drifted along the floor by more than it
     /// leave (the last point taking the slot).
     fn refresh(&mut self, to_world: impl Fn(V3) -> V3, up: V3) {
@@ -168,7 +173,9 @@ impl FloorManifold {
 
     /// The `n` deepest points, in the manifold's order.
     fn deepest(&self, n: usize) -> impl Iterator<Item = &ManifoldPoint> {
-        let cutoff = if n >= self.points.len() {
+        let cutoff = if n == 0 {
+            f32::NEG_INFINITY
+        } else if n >= self.points.len() {
             f32::INFINITY
         } else {
             let mut depths = [f32::INFINITY; MANIFOLD_POINTS];
@@ -237,9 +244,15 @@ impl FloorContacts {
         }
     }
 
+    /// Whether the collider (raw handle) is a link's that the hook keeps a manifold for.
+    fn keeps(&self, collider: (u32, u32)) -> bool {
+        let state = self.state.lock().unwrap_or_else(|e| e.into_inner());
+        state.manifolds.contains_key(&collider)
+    }
+
     /// Updates the link collider's manifold for this substep: `lowest` is its shape's lowest
     /// point (in its frame), `to_world` its pose. Then `write(k, on_link, distance)` for each
-    /// of at most `capacity` points (the deepest), and returns how many.
+    /// of at most `capacity` points (the deepest).
     fn update(
         &self,
         collider: (u32, u32),
@@ -247,10 +260,12 @@ impl FloorContacts {
         to_world: impl Fn(V3) -> V3 + Copy,
         capacity: usize,
         mut write: impl FnMut(usize, V3, f32),
-    ) -> Option<usize> {
+    ) {
         let mut state = self.state.lock().unwrap_or_else(|e| e.into_inner());
         let substep = state.substep;
-        let manifold = state.manifolds.get_mut(&collider)?;
+        let Some(manifold) = state.manifolds.get_mut(&collider) else {
+            return;
+        };
         // A pair rapier did not see last substep was over 2 cm apart: Bullet's points are gone.
         if manifold.seen + 1 != substep {
             manifold.points.clear();
@@ -258,12 +273,9 @@ impl FloorContacts {
         manifold.seen = substep;
         manifold.refresh(to_world, self.up);
         manifold.add_lowest(lowest, to_world, self.up);
-        let mut written = 0;
-        for point in manifold.deepest(capacity) {
-            write(written, to_world(point.on_link), point.distance);
-            written += 1;
+        for (k, point) in manifold.deepest(capacity).enumerate() {
+            write(k, to_world(point.on_link), point.distance);
         }
-        Some(written)
     }
 }
 
@@ -317,28 +329,29 @@ macro_rules! floor_contact_hooks {
                 let Some(&template) = rigid.solver_contacts.first() else {
                     return;
                 };
-                // Each solver contact names a distinct point of rapier's manifold.
+                if !self.keeps(link) {
+                    return;
+                }
+                // Each solver contact names a distinct point of rapier's manifold. Rewritten in
+                // place: the container keeps its capacity, so a step allocates nothing.
                 let capacity = rigid.manifold.points.len().min($max_contacts);
                 let up = self.up;
-                let rapiers = std::mem::take(rigid.solver_contacts);
-                let mut contacts = rapiers.clone();
+                let contacts = &mut *rigid.solver_contacts;
                 contacts.clear();
-                let written =
-                    self.update(link, lowest, to_world, capacity, |k, on_link, distance| {
-                        let on_floor = on_link - up * distance;
-                        let (first, second) = if floor_first {
-                            (on_floor, on_link)
-                        } else {
-                            (on_link, on_floor)
-                        };
-                        let mut contact = template;
-                        contact.anchor1 = from3(first);
-                        contact.anchor2 = from3(second);
-                        contact.dist = distance;
-                        contact.contact_id = [k as _];
-                        contacts.push(contact);
-                    });
-                *rigid.solver_contacts = if written.is_some() { contacts } else { rapiers };
+                self.update(link, lowest, to_world, capacity, |k, on_link, distance| {
+                    let on_floor = on_link - up * distance;
+                    let (first, second) = if floor_first {
+                        (on_floor, on_link)
+                    } else {
+                        (on_link, on_floor)
+                    };
+                    let mut contact = template;
+                    contact.anchor1 = from3(first);
+                    contact.anchor2 = from3(second);
+                    contact.dist = distance;
+                    contact.contact_id = [k as _];
+                    contacts.push(contact);
+                });
             }
         }
     };

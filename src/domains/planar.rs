@@ -419,7 +419,10 @@ impl Planar {
                     ))
                     .can_sleep(false),
             );
-            let threshold = self.contact_breaking_threshold(bodies.len());
+            let threshold =
+                walker_base::link_contact_threshold(&self.robot.feet, bodies.len(), || {
+                    self.bounded_threshold(bodies.len())
+                });
             let mut handles = Vec::new();
             for capsule in &link.capsules {
                 let a = Vector::new(capsule.a.0, capsule.a.1) - *origin;
@@ -569,15 +572,6 @@ impl Planar {
         walker_base::sync_link_velocities!(self.world, self.multibody, 3, set);
     }
 
-    /// Link `k`'s contact breaking threshold: measured in PyBullet for an observed foot, else
-    /// from its capsules as Bullet bounds them.
-    fn contact_breaking_threshold(&self, k: usize) -> f32 {
-        if let Some(foot) = self.robot.feet.iter().find(|f| f.link == k) {
-            return foot.contact_threshold;
-        }
-        self.bounded_threshold(k)
-    }
-
     /// Each observed foot's contact threshold as measured in PyBullet and as its shapes give it.
     #[cfg(test)]
     pub(super) fn feet_thresholds(&self) -> Vec<(f32, f32)> {
@@ -603,7 +597,7 @@ impl Planar {
     /// step, and the links' speeds from the multibody's.
     fn bullet_substep(&mut self, torques: &[f32]) {
         self.apply_forces(torques);
-        walker_base::set_bullet_limit_springs!(self.world, self.multibody);
+        walker_base::set_bullet_limit_springs!(self.world, self.multibody, |_| 1.0);
         self.floor_contacts.next_substep();
         super::engine(|| self.world.step_with_events(&self.floor_contacts, &()));
         self.sync_link_velocities();

@@ -27,6 +27,8 @@ const FLOOR_FRICTION: f32 = 0.8;
 /// Links that only chain several hinges of one MuJoCo body: no shape, and a token mass (massless
 /// in PyBullet) so that rapier's multibody gives the link a well-defined inertia.
 const CHAIN_LINK_MASS: f32 = 0.01;
+/// A hinge's free coordinate in rapier's multibody: its angle about its local x axis.
+const HINGE_ANGLE: usize = 3;
 /// The floor's normal, as the floor contacts take it.
 const UP: nalgebra::Vector3<f32> = nalgebra::Vector3::new(0.0, 0.0, 1.0);
 
@@ -537,7 +539,9 @@ impl Spatial {
         let mut bodies = Vec::new();
         let mut colliders = Vec::new();
         for (k, (link, &groups)) in self.robot.links.iter().zip(&link_groups).enumerate() {
-            let threshold = self.contact_breaking_threshold(k);
+            let threshold = walker_base::link_contact_threshold(&self.robot.feet, k, || {
+                self.bounded_threshold(k)
+            });
             let mut builder = RigidBodyBuilder::dynamic()
                 .translation(link.origin)
                 .can_sleep(false);
@@ -633,17 +637,34 @@ impl Spatial {
         self.displacement = vec![0.0; ndofs.map_or(0, |(m, _)| m.ndofs())];
     }
 
+    /// Whether some hinge's model axis is longer than 1 ([`Spatial::turn_joints_as_bullet`]).
+    fn has_long_axes(&self) -> bool {
+        self.robot.links.iter().any(|l| l.axis_length != 1.0)
+    }
+
+    /// Each hinge's angle before a substep, for [`Spatial::turn_joints_as_bullet`] after it.
+    fn record_joint_angles(&mut self) {
+        let world = &self.world;
+        let Some((multibody, _)) = self.multibody.and_then(|h| world.multibody_joints.get(h))
+        else {
+            return;
+        };
+        for (k, angle) in self.angles_before.iter_mut().enumerate().skip(1) {
+            if let Some(link) = multibody.link(k) {
+                *angle = link.joint.coords()[HINGE_ANGLE];
+            }
+        }
+    }
+
     /// Bullet's multibody takes a hinge's model axis as given, not normalised: a joint whose
     /// axis is longer than 1 (the Ant's ankles, sqrt 2; the Humanoid's arms, sqrt 2 and sqrt 6)
     /// spins its link `axis_length` times its joint speed, which makes it that much heavier to
     /// turn (torques above, speeds observed), while the link turns by the joint angle about the
-    /// unit axis. rapier turns the link as far as it spins; this takes back the difference
-    /// after each substep (`before` holds the angles from before it).
-    fn turn_joints_as_bullet(&mut self, before: bool) {
+    /// unit axis. rapier turns the link as far as it spins; after each substep this takes back
+    /// the difference from the angles [`Spatial::record_joint_angles`] kept, and moves the links'
+    /// bodies (and so their colliders) to the poses that gives.
+    fn turn_joints_as_bullet(&mut self) {
         let links = &self.robot.links;
-        if links.iter().all(|l| l.axis_length == 1.0) {
-            return;
-        }
         let world = &mut self.world;
         let Some((multibody, _)) = self
             .multibody
@@ -651,36 +672,22 @@ impl Spatial {
         else {
             return;
         };
-        // A hinge's free coordinate is its angle about its local x axis.
-        const ANGLE: usize = 3;
         self.displacement.fill(0.0);
         for (k, link) in links.iter().enumerate().skip(1) {
-            let Some(joint_link) = multibody.link(k) else {
-                continue;
-            };
-            let angle = joint_link.joint.coords()[ANGLE];
-            if before {
-                self.angles_before[k] = angle;
-            } else if link.axis_length != 1.0 {
-                let turned = angle - self.angles_before[k];
+            if let Some(joint_link) = multibody.link(k) {
+                let turned = joint_link.joint.coords()[HINGE_ANGLE] - self.angles_before[k];
                 self.displacement[joint_link.assembly_id()] =
                     turned * (1.0 / link.axis_length - 1.0);
             }
         }
-        if !before {
-            multibody.apply_displacements(&self.displacement);
-            multibody.forward_kinematics(&world.bodies, true);
-            multibody.update_rigid_bodies(&mut world.bodies, false);
+        multibody.apply_displacements(&self.displacement);
+        multibody.forward_kinematics(&world.bodies, true);
+        // `set_position` marks the pose changed, so the colliders follow before the next
+        // collision detection (writing the poses in place would leave them behind).
+        for link in multibody.links() {
+            let pose = *link.local_to_world();
+            super::body_mut(&mut world.bodies, link.rigid_body_handle()).set_position(pose, false);
         }
-    }
-
-    /// Link `k`'s contact breaking threshold: measured in PyBullet for an observed foot, else
-    /// from its geoms as Bullet bounds them about its centre of mass.
-    fn contact_breaking_threshold(&self, k: usize) -> f32 {
-        if let Some(foot) = self.robot.feet.iter().find(|f| f.link == k) {
-            return foot.contact_threshold;
-        }
-        self.bounded_threshold(k)
     }
 
     /// Each observed foot's contact threshold as measured in PyBullet and as its shapes give it.
@@ -730,11 +737,19 @@ impl Spatial {
     /// step, and the links' speeds from the multibody's.
     fn bullet_substep(&mut self, torques: &[f32]) {
         self.apply_forces(torques);
-        walker_base::set_bullet_limit_springs!(self.world, self.multibody);
+        let links = &self.robot.links;
+        walker_base::set_bullet_limit_springs!(self.world, self.multibody, |k: usize| {
+            links.get(k).map_or(1.0, |l| l.axis_length)
+        });
         self.floor_contacts.next_substep();
-        self.turn_joints_as_bullet(true);
+        let long_axes = self.has_long_axes();
+        if long_axes {
+            self.record_joint_angles();
+        }
         super::engine(|| self.world.step_with_events(&self.floor_contacts, &()));
-        super::engine(|| self.turn_joints_as_bullet(false));
+        if long_axes {
+            super::engine(|| self.turn_joints_as_bullet());
+        }
         self.sync_link_velocities();
     }
 

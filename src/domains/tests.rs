@@ -830,11 +830,12 @@ fn a_joint_just_past_its_limit_is_pushed_back_as_in_pybullet() {
 #[test]
 fn the_limit_spring_is_bullets_erp_with_almost_no_cfm() {
     let dt = walker_base::CONTROL_PERIOD / walker_base::BULLET_SUBSTEPS as f32;
-    let (frequency, damping) = walker_base::bullet_limit_spring(0.01, dt);
+    let (frequency, damping) = walker_base::bullet_limit_spring(0.01, dt, 1.0);
     let spring = rapier2d::prelude::SpringCoefficients::new(frequency, damping);
     assert!((spring.erp(dt) - walker_base::BULLET_LIMIT_ERP).abs() < 1e-5);
     assert!(spring.cfm_coeff(dt) < 1e-3);
-    let stop = walker_base::bullet_limit_spring(walker_base::BULLET_SPLIT_IMPULSE_THRESHOLD, dt);
+    let stop =
+        walker_base::bullet_limit_spring(walker_base::BULLET_SPLIT_IMPULSE_THRESHOLD, dt, 1.0);
     assert_eq!(stop, walker_base::BULLET_LIMIT_SPRING);
 }
 

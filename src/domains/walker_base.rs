@@ -40,10 +40,12 @@ pub(super) fn bullet_erp_spring(erp: f32, dt: f32) -> (f32, f32) {
 }
 
 /// rapier's limit softness for a joint `violation` past its limit, in substeps of `dt` seconds:
-/// Bullet's ERP within the split-impulse threshold, else a stop.
-pub(super) fn bullet_limit_spring(violation: f32, dt: f32) -> (f32, f32) {
+/// Bullet's ERP within the split-impulse threshold, else a stop. A hinge on a model axis of
+/// length `axis_length` turns 1/`axis_length` as far as rapier moves it (spatial.rs), so its
+/// ERP is that much larger here.
+pub(super) fn bullet_limit_spring(violation: f32, dt: f32, axis_length: f32) -> (f32, f32) {
     if violation > 0.0 && violation < BULLET_SPLIT_IMPULSE_THRESHOLD {
-        bullet_erp_spring(BULLET_LIMIT_ERP, dt)
+        bullet_erp_spring((BULLET_LIMIT_ERP * axis_length).min(0.99), dt)
     } else {
         BULLET_LIMIT_SPRING
     }
@@ -51,10 +53,10 @@ pub(super) fn bullet_limit_spring(violation: f32, dt: f32) -> (f32, f32) {
 
 /// Sets every limited joint of a walker's rapier2d or rapier3d multibody (`$world`, the handle
 /// `$multibody`) to `bullet_limit_spring` for how far it is past its limits now, for the next
-/// substep (the two crates' types differ, the code does not; `SpringCoefficients` is the
-/// caller's crate's).
+/// substep; `$axis_length(k)` is multibody link k's model axis length (the two crates' types
+/// differ, the code does not; `SpringCoefficients` is the caller's crate's).
 macro_rules! set_bullet_limit_springs {
-    ($world:expr, $multibody:expr) => {{
+    ($world:expr, $multibody:expr, $axis_length:expr) => {{
         let world = &mut $world;
         let dt = world.integration_parameters.dt;
         if let Some((multibody, _)) = $multibody.and_then(|h| world.multibody_joints.get_mut(h)) {
@@ -70,7 +72,8 @@ macro_rules! set_bullet_limit_springs {
                             .max(limits.min - coords[i]);
                     }
                 }
-                let (frequency, damping) = walker_base::bullet_limit_spring(violation, dt);
+                let (frequency, damping) =
+                    walker_base::bullet_limit_spring(violation, dt, $axis_length(k));
                 data.softness = SpringCoefficients::new(frequency, damping);
             }
         }
@@ -124,8 +127,9 @@ macro_rules! set_bullet_solver {
         params.contact_softness = SpringCoefficients::new(frequency, damping);
         params.static_contact_softness = params.contact_softness;
         params.normalized_max_corrective_velocity = f32::MAX;
-        // Bullet starts multibody contacts from zero impulse each substep (its articulated
-        // warm starting is off unless asked for).
+        // Bullet starts multibody contacts and limits from zero impulse each substep (its
+        // articulated warm starting is off unless asked for); in rapier this covers every
+        // constraint.
         params.warmstart_coefficient = 0.0;
     }};
 }
@@ -148,6 +152,18 @@ impl Foot {
             contact_threshold,
         }
     }
+}
+
+/// A link's contact breaking threshold: an observed foot's as measured in PyBullet, else
+/// `bounded()`, its shapes' as Bullet bounds them (floor_contacts.rs).
+pub(super) fn link_contact_threshold(
+    feet: &[Foot],
+    link: usize,
+    bounded: impl FnOnce() -> f32,
+) -> f32 {
+    feet.iter()
+        .find(|f| f.link == link)
+        .map_or_else(bounded, |f| f.contact_threshold)
 }
 
 /// Whether `$foot` (a `Foot`) of a 2D or 3D walker (`$env`, with `world`, `colliders` per link
