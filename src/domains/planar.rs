@@ -572,16 +572,14 @@ impl Planar {
         walker_base::sync_link_velocities!(self.world, self.multibody, 3, set);
     }
 
-    /// Each observed foot's contact threshold as measured in PyBullet and as its shapes give it.
+    /// The observed feet.
     #[cfg(test)]
-    pub(super) fn feet_thresholds(&self) -> Vec<(f32, f32)> {
-        let feet = self.robot.feet.iter();
-        feet.map(|f| (f.contact_threshold, self.bounded_threshold(f.link)))
-            .collect()
+    pub(super) fn feet(&self) -> &[Foot] {
+        &self.robot.feet
     }
 
     /// Link `k`'s contact breaking threshold from its capsules as Bullet bounds them.
-    fn bounded_threshold(&self, k: usize) -> f32 {
+    pub(super) fn bounded_threshold(&self, k: usize) -> f32 {
         let link = &self.robot.links[k];
         let com = link.inertial.com;
         let at = |(x, z): (f32, f32)| nalgebra::Vector3::new(x - com.0, 0.0, z - com.1);

@@ -690,16 +690,14 @@ impl Spatial {
         }
     }
 
-    /// Each observed foot's contact threshold as measured in PyBullet and as its shapes give it.
+    /// The observed feet.
     #[cfg(test)]
-    pub(super) fn feet_thresholds(&self) -> Vec<(f32, f32)> {
-        let feet = self.robot.feet.iter();
-        feet.map(|f| (f.contact_threshold, self.bounded_threshold(f.link)))
-            .collect()
+    pub(super) fn feet(&self) -> &[Foot] {
+        &self.robot.feet
     }
 
     /// Link `k`'s contact breaking threshold from its geoms as Bullet bounds them.
-    fn bounded_threshold(&self, k: usize) -> f32 {
+    pub(super) fn bounded_threshold(&self, k: usize) -> f32 {
         let link = &self.robot.links[k];
         let mass: f32 = link.inertials.iter().map(|i| i.mass).sum();
         let com = if mass > 0.0 {

@@ -922,10 +922,22 @@ fn bullets_bounds_give_the_feet_thresholds_measured_in_pybullet() {
     // The HalfCheetah's capsules are placed by `pos` (btCapsuleShapeZ, bounded otherwise); the
     // Humanoid's foot is a link of its own in PyBullet (a sphere 0.1 m from its frame), part of
     // the shin's in ours.
+    let (hopper, walker, ant) = (Planar::hopper(), Planar::walker(), Spatial::ant());
+    let thresholds = |feet: &[walker_base::Foot], bounded: &dyn Fn(usize) -> f32| {
+        feet.iter()
+            .map(|f| (f.contact_threshold, bounded(f.link)))
+            .collect::<Vec<_>>()
+    };
     let robots = [
-        ("hopper", Planar::hopper().feet_thresholds()),
-        ("walker", Planar::walker().feet_thresholds()),
-        ("ant", Spatial::ant().feet_thresholds()),
+        (
+            "hopper",
+            thresholds(hopper.feet(), &|k| hopper.bounded_threshold(k)),
+        ),
+        (
+            "walker",
+            thresholds(walker.feet(), &|k| walker.bounded_threshold(k)),
+        ),
+        ("ant", thresholds(ant.feet(), &|k| ant.bounded_threshold(k))),
     ];
     for (name, feet) in robots {
         for (measured, bounded) in feet {
