@@ -6,10 +6,13 @@ and reward, next to PyBullet's own change from the start, and the mean signed pi
 forward speed of each (which way they fall).
 
 Usage: python scripts/conformance/from_reset.py [--domains ant,humanoid] [--cases 20]
-[--steps 12] (in the conformance venv, PRAC_BIN set; scripts/conformance/run runs it).
+[--steps 12] [--fixture FILE] (in the conformance venv, PRAC_BIN set; scripts/conformance/run
+runs it). --fixture also writes each random case's seed, actions and PyBullet's observations
+(tests/fixtures/pybullet-reset-steps.json, which the tests replay on ours).
 """
 
 import argparse
+import json
 
 import gym
 import numpy as np
@@ -38,7 +41,7 @@ def play(name, cases, steps, seed):
     ours = PracEnv(name)
     theirs = gym.make(ENVS[name])
     rng = np.random.default_rng(seed)
-    rows = []  # per case and mode: (ours observations, theirs, our rewards, theirs)
+    rows = []  # per case and mode: (ours observations, theirs, our rewards, theirs, actions)
     for case in range(cases):
         for mode in ("zero", "random"):
             start, _ = ours.reset(seed=1000 + case)
@@ -48,11 +51,12 @@ def play(name, cases, steps, seed):
                 joint.reset_current_position(angle, 0.0)
             pybullet_start = observe_now(robot)
             env.potential = robot.calc_potential()
-            ours_obs, theirs_obs, ours_r, theirs_r = [start], [pybullet_start], [], []
+            ours_obs, theirs_obs, ours_r, theirs_r, actions = [start], [pybullet_start], [], [], []
             for _ in range(steps):
                 action = np.zeros(theirs.action_space.shape) if mode == "zero" else rng.uniform(
                     -1.0, 1.0, size=theirs.action_space.shape
                 )
+                actions.append(action)
                 o, r, terminated, truncated, _ = ours.step(action)
                 _, tr, done, _ = theirs.step(action)
                 ours_obs.append(o)
@@ -61,7 +65,7 @@ def play(name, cases, steps, seed):
                 theirs_r.append(tr)
                 if terminated or truncated or done:
                     break
-            rows.append((mode, np.array(ours_obs), np.array(theirs_obs), ours_r, theirs_r))
+            rows.append((mode, np.array(ours_obs), np.array(theirs_obs), ours_r, theirs_r, actions, 1000 + case))
     ours.close()
     theirs.close()
     return rows
@@ -78,14 +82,14 @@ def report(name, rows):
                 continue
 
             def diff(column, scale=1.0):
-                d = np.mean([abs(o[t][column] - p[t][column]) for _, o, p, _, _ in alive]) / scale
-                own = np.mean([abs(p[t][column] - p[0][column]) for _, _, p, _, _ in alive]) / scale
+                d = np.mean([abs(o[t][column] - p[t][column]) for _, o, p, *_ in alive]) / scale
+                own = np.mean([abs(p[t][column] - p[0][column]) for _, _, p, *_ in alive]) / scale
                 return f"{d:.3g} ({own:.2g})"
 
-            joints = np.mean([np.abs(o[t][JOINTS:-1:2] - p[t][JOINTS:-1:2]).mean() for _, o, p, _, _ in alive])
-            own_joints = np.mean([np.abs(p[t][JOINTS:-1:2] - p[0][JOINTS:-1:2]).mean() for _, _, p, _, _ in alive])
-            reward = np.mean([abs(ro[t - 1] - rt[t - 1]) for _, _, _, ro, rt in alive])
-            size = np.mean([abs(rt[t - 1]) for _, _, _, _, rt in alive])
+            joints = np.mean([np.abs(o[t][JOINTS:-1:2] - p[t][JOINTS:-1:2]).mean() for _, o, p, *_ in alive])
+            own_joints = np.mean([np.abs(p[t][JOINTS:-1:2] - p[0][JOINTS:-1:2]).mean() for _, _, p, *_ in alive])
+            reward = np.mean([abs(ro[t - 1] - rt[t - 1]) for _, _, _, ro, rt, *_ in alive])
+            size = np.mean([abs(rt[t - 1]) for _, _, _, _, rt, *_ in alive])
             print(
                 f"| {mode} | {t} | {len(alive)} | {diff(HEIGHT)} | {diff(VX, 0.3)} | {diff(ROLL)} | {diff(PITCH)} "
                 f"| {joints:.3g} ({own_joints:.2g}) | {reward:.3g} ({size:.2g}) |"
@@ -107,15 +111,40 @@ def report(name, rows):
             print(f"| {mode} | {t} | {signed(HEIGHT)} | {signed(VX, 0.3)} | {signed(PITCH)} |")
 
 
+def fixture_cases(rows, cases=5, steps=6):
+    """The first random cases, for the tests: our reset seed, the actions, PyBullet's
+    observations after each (float32-rounded lists)."""
+    out = []
+    for mode, _, theirs, _, _, actions, seed in rows:
+        if mode != "random" or len(out) == cases or len(theirs) <= steps:
+            continue
+        out.append(
+            {
+                "seed": seed,
+                "actions": [[round(float(x), 7) for x in a] for a in actions[:steps]],
+                "observations": [[round(float(x), 7) for x in o] for o in theirs[1 : steps + 1]],
+            }
+        )
+    return out
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--domains", default="ant,humanoid")
     parser.add_argument("--cases", type=int, default=20)
     parser.add_argument("--steps", type=int, default=12)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--fixture", help="also write the first random cases here (JSON)")
     args = parser.parse_args()
+    fixture = {}
     for name in args.domains.split(","):
-        report(name, play(name, args.cases, args.steps, args.seed))
+        rows = play(name, args.cases, args.steps, args.seed)
+        report(name, rows)
+        fixture[name] = fixture_cases(rows)
+    if args.fixture:
+        with open(args.fixture, "w") as f:
+            json.dump(fixture, f, indent=1)
+            f.write("\n")
 
 
 if __name__ == "__main__":
