@@ -48,7 +48,9 @@ pub struct TrainReport {
 }
 
 pub const CSV_HEADER: &str = "step,episode,return,discounted_return,length,forecast,epsilon,critic_loss,actor_loss,model_loss,ent_coef";
-pub const EVAL_CSV_HEADER: &str = "step,eval_return_mean,eval_return_std,eval_discounted_mean";
+/// Per evaluation: its returns, how many of its episodes the task ended early (falls), their
+/// mean forward distance (walkers; empty elsewhere) and the run's training seconds so far.
+pub const EVAL_CSV_HEADER: &str = "step,eval_return_mean,eval_return_std,eval_discounted_mean,eval_terminated,eval_distance_mean,seconds";
 
 /// Builds the manifest of a trained bundle.
 pub fn manifest(
@@ -134,6 +136,7 @@ pub struct Trainer {
 }
 
 fn append(path: &Path, header: &str) -> anyhow::Result<File> {
+    widen_csv(path, header)?;
     let new = !path.exists() || std::fs::metadata(path)?.len() == 0;
     let mut file = OpenOptions::new()
         .create(true)
@@ -144,6 +147,39 @@ fn append(path: &Path, header: &str) -> anyhow::Result<File> {
         writeln!(file, "{header}")?;
     }
     Ok(file)
+}
+
+/// A CSV written with fewer of `header`'s columns (an earlier version's) takes the new header,
+/// its rows left empty in the new columns, so a resumed run appends full rows to a valid file.
+fn widen_csv(path: &Path, header: &str) -> anyhow::Result<()> {
+    if !path.exists() {
+        return Ok(());
+    }
+    let text = std::fs::read_to_string(path)?;
+    let Some(old) = text.lines().next() else {
+        return Ok(());
+    };
+    if old == header {
+        return Ok(());
+    }
+    let Some(added) = header
+        .strip_prefix(old)
+        .and_then(|rest| rest.strip_prefix(','))
+    else {
+        bail!(
+            "{} has columns '{old}', not a start of '{header}'",
+            path.display()
+        );
+    };
+    let padding = ",".repeat(added.split(',').count());
+    let mut widened = format!("{header}\n");
+    for line in text.lines().skip(1) {
+        widened.push_str(line);
+        widened.push_str(&padding);
+        widened.push('\n');
+    }
+    std::fs::write(path, widened)?;
+    Ok(())
 }
 
 /// Drops CSV rows past `step` (written after the checkpoint a resumed run starts from).
@@ -447,10 +483,22 @@ impl Trainer {
                     eval::mean_std(&episodes.iter().map(|e| e.ret).collect::<Vec<_>>());
                 let (dmean, _) =
                     eval::mean_std(&episodes.iter().map(|e| e.discounted).collect::<Vec<_>>());
-                writeln!(eval_csv, "{},{mean},{std},{dmean}", self.progress.step)?;
-                bar.println(format!(
-                    "step {}: deterministic evaluation return {mean:.1} +- {std:.1}",
+                let falls = episodes.iter().filter(|e| e.terminated).count();
+                let distance = episodes
+                    .iter()
+                    .map(|e| e.distance)
+                    .collect::<Option<Vec<f64>>>()
+                    .map_or_else(String::new, |d| eval::mean_std(&d).0.to_string());
+                let seconds = seconds_before + started.elapsed().as_secs_f64();
+                writeln!(
+                    eval_csv,
+                    "{},{mean},{std},{dmean},{falls},{distance},{seconds:.1}",
                     self.progress.step
+                )?;
+                bar.println(format!(
+                    "step {}: deterministic evaluation return {mean:.1} +- {std:.1}, {falls} of {} ended early",
+                    self.progress.step,
+                    episodes.len()
                 ));
             }
 

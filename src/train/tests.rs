@@ -487,3 +487,56 @@ fn norm_obs_runs_ship_their_statistics_and_resume_only_with_the_flag() {
     resumed.run().unwrap();
     assert_eq!(resumed.progress.step, 700);
 }
+
+#[test]
+fn evaluations_record_falls_distance_and_time_and_widen_an_older_csv() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut options = TrainOptions::new("pendulum", &dir.path().join("p.safetensors"));
+    options.steps = 300;
+    options.eval_every = 100;
+    options.eval_episodes = 1;
+    options.value_episodes = 1;
+    options.progress = false;
+    Trainer::new(options.clone(), false).unwrap().run().unwrap();
+    let rows = |path: &std::path::Path| -> Vec<Vec<String>> {
+        std::fs::read_to_string(path)
+            .unwrap()
+            .lines()
+            .map(|l| l.split(',').map(str::to_string).collect())
+            .collect()
+    };
+    let written = rows(&options.eval_csv);
+    assert_eq!(written[0].join(","), super::run::EVAL_CSV_HEADER);
+    assert_eq!(written.len(), 4, "{written:?}");
+    let mut last_seconds = 0.0;
+    for row in &written[1..] {
+        assert_eq!(row.len(), 7, "{row:?}");
+        // The pendulum never ends early and has no forward distance.
+        assert_eq!((row[4].as_str(), row[5].as_str()), ("0", ""), "{row:?}");
+        let seconds: f64 = row[6].parse().unwrap();
+        assert!(seconds >= last_seconds, "{row:?}");
+        last_seconds = seconds;
+    }
+
+    // A run written before these columns: resuming widens its file instead of appending rows
+    // longer than its header.
+    let old: Vec<String> = written.iter().map(|row| row[..4].join(",")).collect();
+    std::fs::write(&options.eval_csv, old.join("\n") + "\n").unwrap();
+    options.steps = 400;
+    Trainer::new(options.clone(), true).unwrap().run().unwrap();
+    let widened = rows(&options.eval_csv);
+    assert_eq!(widened[0].join(","), super::run::EVAL_CSV_HEADER);
+    assert_eq!(widened.len(), 5, "{widened:?}");
+    assert!(widened.iter().all(|row| row.len() == 7), "{widened:?}");
+    assert_eq!(widened[1][4..], ["", "", ""]);
+    assert_eq!(widened[4][0], "400");
+    assert_eq!(widened[4][4], "0");
+
+    // A file whose columns are not these is refused, not mixed into.
+    std::fs::write(&options.eval_csv, "step,something_else\n100,1\n").unwrap();
+    options.steps = 500;
+    let Err(e) = Trainer::new(options.clone(), true).unwrap().run() else {
+        panic!("appended to a foreign CSV");
+    };
+    assert!(e.to_string().contains("not a start of"), "{e}");
+}
