@@ -94,9 +94,6 @@ fn the_shipped_hopper_bundle_hops_forward_without_falling() {
 /// The Humanoid's criterion: upright for all 1000 steps in at least 80% of episodes, walking at
 /// least 10 m forward on average (a fallen episode counts with the distance it made).
 #[test]
-#[ignore = "the shipped Humanoid was trained before Bullet's hinge axes and floor manifolds; on \
-            the current physics 40 of its 50 episodes from 777000 stay upright but 3 of these 5 \
-            (docs/results.md): `cargo test --release -- --ignored` runs it"]
 fn the_shipped_humanoid_bundle_walks_without_falling() {
     let (_, episodes) = play("humanoid", 5);
     let upright = count_upright(&episodes);
