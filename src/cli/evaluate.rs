@@ -36,14 +36,13 @@ pub struct Evaluation {
 fn summarise(episodes: &[Episode]) -> Played {
     let of = |f: &dyn Fn(&Episode) -> f64| episodes.iter().map(f).collect::<Vec<_>>();
     let (return_mean, return_std) = mean_std(&of(&|e| e.ret));
-    let distances: Option<Vec<f64>> = episodes.iter().map(|e| e.distance).collect();
     Played {
         return_mean,
         return_std,
         discounted_mean: mean_std(&of(&|e| e.discounted)).0,
-        terminated: episodes.iter().filter(|e| e.terminated).count(),
+        terminated: crate::eval::terminated_count(episodes),
         steps_mean: mean_std(&of(&|e| e.len as f64)).0,
-        distance_mean: distances.map(|d| mean_std(&d).0),
+        distance_mean: crate::eval::mean_distance(episodes),
     }
 }
 

@@ -244,28 +244,20 @@ impl FloorContacts {
         }
     }
 
-    /// Whether the collider (raw handle) is a link's that the hook keeps a manifold for.
-    fn keeps(&self, collider: (u32, u32)) -> bool {
-        let state = self.state.lock().unwrap_or_else(|e| e.into_inner());
-        state.manifolds.contains_key(&collider)
-    }
-
-    /// Updates the link collider's manifold for this substep: `lowest` is its shape's lowest
-    /// point (in its frame), `to_world` its pose. Then `write(k, on_link, distance)` for each
-    /// of at most `capacity` points (the deepest).
+    /// Updates the link collider's manifold for this substep, if the hook keeps one for it:
+    /// `lowest` is its shape's lowest point (in its frame), `to_world` its pose. Returns at most
+    /// `capacity` of its points (the deepest) in world coordinates with their distances; None
+    /// for a collider without a manifold.
     fn update(
         &self,
         collider: (u32, u32),
         lowest: V3,
         to_world: impl Fn(V3) -> V3 + Copy,
         capacity: usize,
-        mut write: impl FnMut(usize, V3, f32),
-    ) {
+    ) -> Option<FloorPoints> {
         let mut state = self.state.lock().unwrap_or_else(|e| e.into_inner());
         let substep = state.substep;
-        let Some(manifold) = state.manifolds.get_mut(&collider) else {
-            return;
-        };
+        let manifold = state.manifolds.get_mut(&collider)?;
         // A pair rapier did not see last substep was over 2 cm apart: Bullet's points are gone.
         if manifold.seen + 1 != substep {
             manifold.points.clear();
@@ -273,9 +265,26 @@ impl FloorContacts {
         manifold.seen = substep;
         manifold.refresh(to_world, self.up);
         manifold.add_lowest(lowest, to_world, self.up);
-        for (k, point) in manifold.deepest(capacity).enumerate() {
-            write(k, to_world(point.on_link), point.distance);
+        let mut out = FloorPoints::default();
+        for point in manifold.deepest(capacity) {
+            out.points[out.len] = (to_world(point.on_link), point.distance);
+            out.len += 1;
         }
+        Some(out)
+    }
+}
+
+/// Up to a manifold's worth of contact points on a link (world coordinates) with their
+/// distances to the floor, kept on the stack: a step allocates nothing.
+#[derive(Default)]
+struct FloorPoints {
+    points: [(V3, f32); MANIFOLD_POINTS],
+    len: usize,
+}
+
+impl FloorPoints {
+    fn as_slice(&self) -> &[(V3, f32)] {
+        &self.points[..self.len]
     }
 }
 
@@ -329,16 +338,16 @@ macro_rules! floor_contact_hooks {
                 let Some(&template) = rigid.solver_contacts.first() else {
                     return;
                 };
-                if !self.keeps(link) {
-                    return;
-                }
                 // Each solver contact names a distinct point of rapier's manifold. Rewritten in
                 // place: the container keeps its capacity, so a step allocates nothing.
                 let capacity = rigid.manifold.points.len().min($max_contacts);
                 let up = self.up;
+                let Some(points) = self.update(link, lowest, to_world, capacity) else {
+                    return;
+                };
                 let contacts = &mut *rigid.solver_contacts;
                 contacts.clear();
-                self.update(link, lowest, to_world, capacity, |k, on_link, distance| {
+                for (k, &(on_link, distance)) in points.as_slice().iter().enumerate() {
                     let on_floor = on_link - up * distance;
                     let (first, second) = if floor_first {
                         (on_floor, on_link)
@@ -351,7 +360,7 @@ macro_rules! floor_contact_hooks {
                     contact.dist = distance;
                     contact.contact_id = [k as _];
                     contacts.push(contact);
-                });
+                }
             }
         }
     };

@@ -451,6 +451,8 @@ pub struct Spatial {
     multibody: Option<MultibodyJointHandle>,
     /// The links' contacts with the floor, as Bullet keeps them.
     floor_contacts: FloorContacts,
+    /// Whether some hinge's model axis is longer than 1 ([`Spatial::turn_joints_as_bullet`]).
+    long_axes: bool,
     /// Per link, its joint's angle before the substep, and the multibody's displacement
     /// (reused: a step allocates nothing).
     angles_before: Vec<f32>,
@@ -495,6 +497,7 @@ impl Spatial {
             drag: true,
             multibody: None,
             floor_contacts: FloorContacts::new((0, 0), UP),
+            long_axes: false,
             angles_before: Vec::new(),
             displacement: Vec::new(),
         };
@@ -634,16 +637,12 @@ impl Spatial {
         self.colliders = colliders;
         self.multibody = joint_handles.first().copied();
         self.floor_contacts = floor_contacts;
+        self.long_axes = self.robot.links.iter().any(|l| l.axis_length != 1.0);
         self.angles_before = vec![0.0; self.robot.links.len()];
         let ndofs = self
             .multibody
             .and_then(|h| self.world.multibody_joints.get(h));
         self.displacement = vec![0.0; ndofs.map_or(0, |(m, _)| m.ndofs())];
-    }
-
-    /// Whether some hinge's model axis is longer than 1 ([`Spatial::turn_joints_as_bullet`]).
-    fn has_long_axes(&self) -> bool {
-        self.robot.links.iter().any(|l| l.axis_length != 1.0)
     }
 
     /// Each hinge's angle before a substep, for [`Spatial::turn_joints_as_bullet`] after it.
@@ -744,12 +743,11 @@ impl Spatial {
             links.get(k).map_or(1.0, |l| l.axis_length)
         });
         self.floor_contacts.next_substep();
-        let long_axes = self.has_long_axes();
-        if long_axes {
+        if self.long_axes {
             self.record_joint_angles();
         }
         super::engine(|| self.world.step_with_events(&self.floor_contacts, &()));
-        if long_axes {
+        if self.long_axes {
             super::engine(|| self.turn_joints_as_bullet());
         }
         self.sync_link_velocities();

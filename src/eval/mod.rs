@@ -74,6 +74,17 @@ pub fn mean_std(values: &[f64]) -> (f64, f64) {
     (mean, var.sqrt())
 }
 
+/// How many of the episodes the task ended early (a walker's falls).
+pub fn terminated_count(episodes: &[Episode]) -> usize {
+    episodes.iter().filter(|e| e.terminated).count()
+}
+
+/// Their mean forward distance in metres, for domains that have one.
+pub fn mean_distance(episodes: &[Episode]) -> Option<f64> {
+    let distances: Option<Vec<f64>> = episodes.iter().map(|e| e.distance).collect();
+    distances.map(|d| mean_std(&d).0)
+}
+
 /// Episodes of the deterministic policy `tanh(mu)`, seeds `seed..seed + episodes`.
 pub fn policy_episodes(
     policy: &std::sync::Arc<Policy>,

@@ -483,12 +483,9 @@ impl Trainer {
                     eval::mean_std(&episodes.iter().map(|e| e.ret).collect::<Vec<_>>());
                 let (dmean, _) =
                     eval::mean_std(&episodes.iter().map(|e| e.discounted).collect::<Vec<_>>());
-                let falls = episodes.iter().filter(|e| e.terminated).count();
-                let distance = episodes
-                    .iter()
-                    .map(|e| e.distance)
-                    .collect::<Option<Vec<f64>>>()
-                    .map_or_else(String::new, |d| eval::mean_std(&d).0.to_string());
+                let falls = eval::terminated_count(&episodes);
+                let distance =
+                    eval::mean_distance(&episodes).map_or_else(String::new, |d| d.to_string());
                 let seconds = seconds_before + started.elapsed().as_secs_f64();
                 writeln!(
                     eval_csv,
@@ -599,7 +596,6 @@ impl Trainer {
         )?;
         let returns: Vec<f64> = episodes.iter().map(|e| e.ret).collect();
         let (eval_return_mean, eval_return_std) = eval::mean_std(&returns);
-        let distances: Option<Vec<f64>> = episodes.iter().map(|e| e.distance).collect();
         let value_scale = ValueScale {
             v_pi: eval::mean_std(&episodes.iter().map(|e| e.discounted).collect::<Vec<_>>()).0,
             v_rand: eval::mean_std(&randoms.iter().map(|e| e.discounted).collect::<Vec<_>>()).0,
@@ -626,8 +622,8 @@ impl Trainer {
             value_scale,
             eval_return_mean,
             eval_return_std,
-            eval_terminated: episodes.iter().filter(|e| e.terminated).count(),
-            eval_distance_mean: distances.map(|d| eval::mean_std(&d).0),
+            eval_terminated: eval::terminated_count(&episodes),
+            eval_distance_mean: eval::mean_distance(&episodes),
             random_return_mean: eval::mean_std(&randoms.iter().map(|e| e.ret).collect::<Vec<_>>())
                 .0,
             model_errors,
