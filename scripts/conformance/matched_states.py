@@ -3,8 +3,9 @@ reached by random actions, with the actions that follow and what PyBullet observ
 for them, so that `prac play-from-states` can play the same actions from the same states.
 
   --out FILE      one JSON file per domain, FILE with {domain} in its name: the states, the
-                  actions, and PyBullet's observations (of the current link poses, see
-                  observe_now) and reward terms after each of them
+                  actions, and after each of them PyBullet's observation as its step returns it
+                  ("obs", its torso one substep old), the same of the current link poses
+                  ("obs_now", see observe_now) and its reward terms
   --fixture FILE  a few states per domain with what PyBullet computes at them (observation,
                   body x, alive bonus, effort costs for a fixed action): the fixture of the tests
   --step-fixture FILE
@@ -40,7 +41,8 @@ def joint_index(p, body, name):
 
 
 def read_state(env):
-    """The root's slides and hinge and the actuated joints, as getJointState gives them."""
+    """The root's slides and hinge and the actuated joints, as getJointState gives them, and the
+    feet contacts its last step measured (its next observation shows them)."""
     robot = env.unwrapped.robot
     p = robot._p
     body = robot.objects[0] if isinstance(robot.objects, tuple) else robot.objects
@@ -54,6 +56,7 @@ def read_state(env):
         "root_velocity": [float(s[1]) for s in root],
         "joints": [float(s[0]) for s in joints],
         "joint_velocities": [float(s[1]) for s in joints],
+        "feet_contact": [float(c) for c in robot.feet_contact],
     }
 
 
@@ -136,9 +139,12 @@ def record(name, cases, horizon, seed, fixture, session=None):
             action = act(obs)
             obs, reward, done, _ = env.step(action)
             case["actions"].append(action.tolist())
+            body_x = float(robot.body_xyz[0])  # as stepped: observe_now recomputes it
             case["pybullet"]["steps"].append(
                 {
-                    "obs": observe_now(robot).tolist(),
+                    "obs": obs.tolist(),
+                    "obs_now": observe_now(robot).tolist(),
+                    "body_x": body_x,
                     "reward": float(reward),
                     "reward_terms": dict(zip(TERMS, map(float, env.unwrapped.rewards))),
                     "terminated": bool(done),

@@ -290,13 +290,17 @@ fn cheetah() -> RobotDef {
 /// hinge (the models' `ignorex`, `ignorez` and `ignorey` joints, which pivot where the torso's
 /// frame is at rest), their speeds, and every actuated joint's angle and speed (rad, rad/s) in
 /// PyBullet's joint order and sign. Read from PyBullet with getJointState, it poses our robot as
-/// PyBullet's was ([`Planar::set_state`]).
+/// PyBullet's was ([`Planar::set_state`]). `feet_contact` is PyBullet's `robot.feet_contact`
+/// there, the contacts its last step measured, which its next observation shows; empty, none
+/// touch (as after a reset).
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct PlanarState {
     pub root: [f32; 3],
     pub root_velocity: [f32; 3],
     pub joints: Vec<f32>,
     pub joint_velocities: Vec<f32>,
+    #[serde(default)]
+    pub feet_contact: Vec<f32>,
 }
 
 /// A planar walker (Hopper, Walker2D, HalfCheetah).
@@ -316,6 +320,11 @@ pub struct Planar {
     multibody: Option<MultibodyJointHandle>,
     /// The links' contacts with the floor, as Bullet keeps them.
     floor_contacts: FloorContacts,
+    /// The observed feet's contacts as the last step ended ([`walker_base::measure_feet_contact`]).
+    feet_contact: Vec<f32>,
+    /// Every link's pose before the step's last substep moved it: PyBullet's getLinkState
+    /// returns the transforms Bullet cached then, and its observation and reward read them.
+    seen_poses: Vec<Pose>,
 }
 
 impl Planar {
@@ -369,6 +378,8 @@ impl Planar {
             joint_state: vec![0.0; 2 * n],
             multibody: None,
             floor_contacts: FloorContacts::new((0, 0), UP),
+            seen_poses: Vec::new(),
+            feet_contact: Vec::new(),
         };
         env.build(&PlanarState {
             joints: vec![0.0; n],
@@ -561,6 +572,20 @@ impl Planar {
         self.multibody = Some(multibody);
         self.floor_contacts = floor_contacts;
         self.sync_link_velocities();
+        self.remember_link_poses();
+        self.feet_contact = vec![0.0; self.robot.feet.len()];
+        if !state.feet_contact.is_empty() {
+            self.feet_contact.copy_from_slice(&state.feet_contact);
+        }
+    }
+
+    /// Keeps the links' current poses as those the observation and reward read
+    /// (`seen_poses`).
+    fn remember_link_poses(&mut self) {
+        self.seen_poses.clear();
+        let bodies = &self.world.bodies;
+        self.seen_poses
+            .extend(self.bodies.iter().map(|&b| *bodies[b].position()));
     }
 
     /// Gives every link's body the multibody's current speeds ([`walker_base::link_velocity`]).
@@ -602,16 +627,21 @@ impl Planar {
     }
 
     /// Starts an episode from PyBullet's state (as the reset would, initial height included) and
-    /// writes its observation. A state of the wrong shape or with a non-finite value changes
+    /// writes its observation (with the state's feet contacts). A state of the wrong shape or with a non-finite value changes
     /// nothing.
     pub fn set_state(&mut self, state: &PlanarState, obs: &mut [f32]) -> Result<(), EnvError> {
         check_obs_len(&self.spec, obs)?;
         let n = self.robot.joints.len();
-        let fields: [(&'static str, &[f32], usize); 4] = [
+        let feet = match state.feet_contact.len() {
+            0 => 0,
+            _ => self.robot.feet.len(),
+        };
+        let fields: [(&'static str, &[f32], usize); 5] = [
             ("root values", &state.root, 3),
             ("root speeds", &state.root_velocity, 3),
             ("joint angles", &state.joints, n),
             ("joint speeds", &state.joint_velocities, n),
+            ("feet contacts", &state.feet_contact, feet),
         ];
         for (what, values, expected) in fields {
             if values.len() != expected {
@@ -652,15 +682,12 @@ impl Planar {
 
     /// PyBullet's body x, which the progress reward measures: the mean x of the robot's parts,
     /// which are every link's centre of mass, the link PyBullet's importer makes at each hinge and
-    /// at each of the root's three joints, and the floor (at x = 0).
+    /// at each of the root's three joints, and the floor (at x = 0), at their `seen_poses`.
     fn body_x(&self) -> f32 {
         let at = |link: usize, rest: (f32, f32)| {
             let origin = self.robot.links[link].origin;
             let local = Vector::new(rest.0 - origin.0, rest.1 - origin.1);
-            self.world.bodies[self.bodies[link]]
-                .position()
-                .transform_point(local)
-                .x
+            self.seen_poses[link].transform_point(local).x
         };
         let mut sum = 3.0 * at(0, self.robot.root);
         for (k, link) in self.robot.links.iter().enumerate() {
@@ -730,13 +757,20 @@ impl Planar {
         (if alive { 1.0 } else { -1.0 }, ends)
     }
 
-    /// PyBullet's calc_state, written into obs; returns (torso z, pitch).
+    /// PyBullet's calc_state, written into obs: the joints as they are, the torso at its
+    /// `seen_poses` one, the feet contacts of the step before; returns that (torso z, pitch),
+    /// which the alive bonus reads.
     fn observe(&mut self, obs: &mut [f32]) -> (f32, f32) {
         self.read_joints();
         let torso = self.torso();
-        let (pos, vel) = (torso.center_of_mass(), torso.linvel());
+        let seen = &self.seen_poses[0];
+        let pos = seen.transform_point(torso.mass_properties().local_mprops.local_com);
+        // Bullet turns a link's speed in its own frame, current, by the cached rotation.
+        let vel = seen
+            .rotation
+            .transform_vector(torso.rotation().inverse_transform_vector(torso.linvel()));
         // The models turn about -y: a counter-clockwise angle in the x-z plane is minus pitch.
-        let pitch = -torso.rotation().angle();
+        let pitch = -seen.rotation.angle();
         let angle_to_target = (0.0f32).atan2(TARGET_X - pos.x);
         let more = [
             pos.y - self.initial_z,
@@ -750,10 +784,7 @@ impl Planar {
         ];
         obs[..MORE].copy_from_slice(&more);
         obs[MORE..MORE + self.joint_state.len()].copy_from_slice(&self.joint_state);
-        for (k, foot) in self.robot.feet.iter().enumerate() {
-            let touching = walker_base::touching_ground!(self, foot);
-            obs[MORE + self.joint_state.len() + k] = f32::from(u8::from(touching));
-        }
+        obs[MORE + self.joint_state.len()..].copy_from_slice(&self.feet_contact);
         clip_observation(obs);
         (pos.y, pitch)
     }
@@ -816,12 +847,16 @@ impl Env for Planar {
     fn step(&mut self, action: &[f32], obs: &mut [f32]) -> Result<Transition, EnvError> {
         check_obs_len(&self.spec, obs)?;
         let a = self.episode.begin_step(&self.spec, action)?;
-        for _ in 0..BULLET_SUBSTEPS {
+        for substep in 0..BULLET_SUBSTEPS {
+            if substep + 1 == BULLET_SUBSTEPS {
+                self.remember_link_poses();
+            }
             self.bullet_substep(&a);
         }
         let (z, pitch) = self.observe(obs);
-        let (alive, ends) = self.alive_bonus(z, pitch, &obs[MORE + self.joint_state.len()..]);
+        let (alive, ends) = self.alive_bonus(z, pitch, &self.feet_contact);
         let potential = self.potential();
+        walker_base::measure_feet_contact!(self);
         Ok(self
             .episode
             .finish_step(a, alive, ends, potential, &self.joint_state))
@@ -857,6 +892,11 @@ impl Planar {
         let (alive, _) = self.alive_bonus(z, pitch, contacts);
         let (power, at_limit) = walker_base::effort_cost_terms(action, &self.joint_state, 1.0);
         [f64::from(self.body_x()), alive, power, at_limit]
+    }
+
+    /// The feet contacts the last step measured (the next observation shows them).
+    pub(super) fn feet_contact_for_test(&self) -> &[f32] {
+        &self.feet_contact
     }
 
     /// How many parts PyBullet's body x averages over (the floor included).

@@ -457,6 +457,12 @@ pub struct Spatial {
     /// (reused: a step allocates nothing).
     angles_before: Vec<f32>,
     displacement: Vec<f32>,
+    /// The observed feet's contacts as the last step ended ([`walker_base::measure_feet_contact`]).
+    feet_contact: Vec<f32>,
+    /// Every link's pose before the step's last substep moved it: PyBullet's getLinkState
+    /// returns the transforms Bullet cached then, and its body x and y (the progress reward)
+    /// read them for every link but the torso, which is its base and current.
+    seen_poses: Vec<Pose>,
 }
 
 impl Spatial {
@@ -500,6 +506,8 @@ impl Spatial {
             long_axes: false,
             angles_before: Vec::new(),
             displacement: Vec::new(),
+            seen_poses: Vec::new(),
+            feet_contact: Vec::new(),
         };
         env.build(&vec![0.0; n]);
         env
@@ -643,6 +651,16 @@ impl Spatial {
             .multibody
             .and_then(|h| self.world.multibody_joints.get(h));
         self.displacement = vec![0.0; ndofs.map_or(0, |(m, _)| m.ndofs())];
+        self.feet_contact = vec![0.0; self.robot.feet.len()];
+        self.remember_link_poses();
+    }
+
+    /// Keeps the links' current poses as those the progress reward reads (`seen_poses`).
+    fn remember_link_poses(&mut self) {
+        self.seen_poses.clear();
+        let bodies = &self.world.bodies;
+        self.seen_poses
+            .extend(self.bodies.iter().map(|&b| *bodies[b].position()));
     }
 
     /// Each hinge's angle before a substep, for [`Spatial::turn_joints_as_bullet`] after it.
@@ -767,12 +785,16 @@ impl Spatial {
 
     /// PyBullet's body_xyz: x and y averaged over the robot's parts, which are every one of its
     /// links' centres of mass, the link its importer makes at each hinge, and the floor (at the
-    /// origin); z is the torso's centre of mass.
+    /// origin), the torso's current and the other links' at their `seen_poses`; z is the
+    /// torso's centre of mass.
     fn body_xyz(&self) -> Vector {
         let mut sum = Vector::ZERO;
         let mut parts = 1; // the floor
-        for (link, &body) in self.robot.links.iter().zip(&self.bodies) {
-            let pose = self.world.bodies[body].position();
+        for (k, (link, &body)) in self.robot.links.iter().zip(&self.bodies).enumerate() {
+            let pose = match k {
+                0 => self.world.bodies[body].position(),
+                _ => &self.seen_poses[k],
+            };
             let anchor = link.parent.map(|_| link.origin);
             for point in anchor
                 .into_iter()
@@ -859,7 +881,8 @@ impl Spatial {
         }
     }
 
-    /// PyBullet's calc_state, written into obs; returns (torso z, pitch).
+    /// PyBullet's calc_state, written into obs, the feet contacts those of the step before;
+    /// returns (torso z, pitch).
     fn observe(&mut self, obs: &mut [f32]) -> (f32, f32) {
         self.read_joints();
         let p = self.body_xyz();
@@ -881,10 +904,7 @@ impl Spatial {
         obs[..MORE].copy_from_slice(&more);
         let joints = self.joint_state.len();
         obs[MORE..MORE + joints].copy_from_slice(&self.joint_state);
-        for (k, foot) in self.robot.feet.iter().enumerate() {
-            let touching = walker_base::touching_ground!(self, foot);
-            obs[MORE + joints + k] = f32::from(u8::from(touching));
-        }
+        obs[MORE + joints..].copy_from_slice(&self.feet_contact);
         clip_observation(obs);
         (p.z, pitch)
     }
@@ -1015,7 +1035,10 @@ impl Env for Spatial {
     fn step(&mut self, action: &[f32], obs: &mut [f32]) -> Result<Transition, EnvError> {
         check_obs_len(&self.spec, obs)?;
         let a = self.episode.begin_step(&self.spec, action)?;
-        for _ in 0..BULLET_SUBSTEPS {
+        for substep in 0..BULLET_SUBSTEPS {
+            if substep + 1 == BULLET_SUBSTEPS {
+                self.remember_link_poses();
+            }
             self.bullet_substep(&a);
         }
         let (z, _pitch) = self.observe(obs);
@@ -1025,6 +1048,7 @@ impl Env for Spatial {
             -1.0
         };
         let potential = self.potential();
+        walker_base::measure_feet_contact!(self);
         Ok(self
             .episode
             .finish_step(a, alive, true, potential, &self.joint_state))

@@ -183,6 +183,20 @@ macro_rules! touching_ground {
 }
 pub(super) use touching_ground;
 
+/// Sets `$env.feet_contact` (`$env` a walker's `&mut self`) to whether each observed foot touches the ground now. PyBullet
+/// measures the contacts after it has observed and scored a step, so its next observation (and
+/// the HalfCheetah's next alive bonus) shows them: one step late, and 0 after a reset.
+macro_rules! measure_feet_contact {
+    ($env:expr) => {{
+        let env = &mut *$env;
+        for k in 0..env.robot.feet.len() {
+            let touching = walker_base::touching_ground!(env, &env.robot.feet[k]);
+            env.feet_contact[k] = f32::from(u8::from(touching));
+        }
+    }};
+}
+pub(super) use measure_feet_contact;
+
 /// Joint angles and speeds, then feet contacts, follow these 8 "more" values.
 pub(super) const MORE: usize = 8;
 
