@@ -1,7 +1,8 @@
 """The 3D walkers (Ant, Humanoid) from matched start states: each episode of ours starts at a
 fixed torso pose with random joint angles; PyBullet's reset is set to the same angles
 (resetJointState, at rest) and both play the same actions, zero torques or uniform random ones,
-for up to --steps steps. Prints, per step, the mean absolute difference of what they observe
+for up to --steps steps (PyBullet's observations as its step returns them, the feet contacts
+those of the step before, as ours). Prints, per step, the mean absolute difference of what they observe
 and reward, next to PyBullet's own change from the start, and the mean signed pitch, height and
 forward speed of each (which way they fall).
 
@@ -58,9 +59,9 @@ def play(name, cases, steps, seed):
                 )
                 actions.append(action)
                 o, r, terminated, truncated, _ = ours.step(action)
-                _, tr, done, _ = theirs.step(action)
+                to, tr, done, _ = theirs.step(action)
                 ours_obs.append(o)
-                theirs_obs.append(observe_now(robot))
+                theirs_obs.append(to)
                 ours_r.append(r)
                 theirs_r.append(tr)
                 if terminated or truncated or done:

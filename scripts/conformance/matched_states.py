@@ -67,7 +67,9 @@ def robot_name(env):
 def observe_now(robot):
     """PyBullet's observation of the current state. Its step observes the links' poses and
     speeds as getLinkState caches them, from before the last substep moved them (one substep,
-    4.1 ms, behind the joints); this recomputes them by forward kinematics first."""
+    4.1 ms, behind the joints), and the feet contacts of the step before; this recomputes the
+    poses by forward kinematics first, and after a step it shows the contacts that step
+    measured."""
     client = robot._p
     cached = client.getLinkState
 

@@ -8,8 +8,9 @@ as a markdown table; a policy that only works in our physics is a sign our physi
                           [--observe-current]
 
 --observe-current gives the policy PyBullet's observation recomputed from the current link
-poses (matched_states.observe_now) instead of the step's, whose torso pose and speed are one
-substep old: to tell that lag from the physics when a policy falls in PyBullet.
+poses and contacts (matched_states.observe_now) instead of the step's, whose torso pose and
+speed are one substep old and feet contacts one step: to tell those lags from the physics when
+a policy falls in PyBullet (prac's domains observe with the same lags).
 """
 
 import argparse

@@ -1057,6 +1057,11 @@ impl Env for Spatial {
 
 #[cfg(test)]
 impl Spatial {
+    /// The feet contacts the last step measured (the next observation shows them).
+    pub(super) fn feet_contact_for_test(&self) -> &[f32] {
+        &self.feet_contact
+    }
+
     /// Takes the floor away and lets the robot fall for `seconds` without torques; returns the
     /// torso's vertical speed.
     pub(super) fn drop_for_test(&mut self, seconds: f32) -> f32 {

@@ -805,6 +805,14 @@ fn planar_walkers_set_to_pybullets_states_observe_and_score_as_pybullet() {
     };
     let err = env.set_state(&nan, &mut obs).unwrap_err();
     assert!(err.to_string().contains("finite"), "{err}");
+    let two_feet = PlanarState {
+        joints: vec![0.0; 3],
+        joint_velocities: vec![0.0; 3],
+        feet_contact: vec![1.0, 0.0],
+        ..PlanarState::default()
+    };
+    let err = env.set_state(&two_feet, &mut obs).unwrap_err();
+    assert!(err.to_string().contains("2 feet contacts"), "{err}");
     assert_eq!(obs, before);
     env.step(&[0.0; 3], &mut obs).unwrap();
 }
@@ -1055,4 +1063,47 @@ fn the_3d_walkers_follow_pybullets_from_matched_resets() {
             );
         }
     }
+}
+
+/// Plays swinging torques from a reset until the episode ends or 200 steps: each observation's
+/// feet contacts must be those `measured` after the step before (none after a reset), and some
+/// foot must touch the ground.
+fn observes_feet_contacts_one_step_late<E: Env>(
+    name: &str,
+    mut env: E,
+    measured: fn(&E) -> &[f32],
+) {
+    let mut obs = vec![0.0; env.spec().obs_dim];
+    env.reset(5, &mut obs).unwrap();
+    let feet = walker_base::MORE + 2 * env.spec().act_dim;
+    let mut before = vec![0.0; obs.len() - feet];
+    assert_eq!(obs[feet..], before[..], "{name} after a reset");
+    let mut landed = false;
+    for step in 0..200 {
+        let action: Vec<f32> = (0..env.spec().act_dim)
+            .map(|k| (0.3 * step as f32 + k as f32).sin())
+            .collect();
+        let transition = env.step(&action, &mut obs).unwrap();
+        assert_eq!(obs[feet..], before[..], "{name} step {step}");
+        before = measured(&env).to_vec();
+        landed |= before.contains(&1.0);
+        if transition.terminated {
+            break;
+        }
+    }
+    assert!(landed, "{name} never touched the ground");
+}
+
+#[test]
+fn every_walker_observes_the_feet_contacts_one_step_late_as_pybullet() {
+    // PyBullet's step updates `robot.feet_contact` after it has observed and scored, so a step's
+    // observation shows the contacts the step before measured (the planar walkers' are checked
+    // against PyBullet's own steps above).
+    for name in ["hopper", "walker", "cheetah"] {
+        let env = Planar::named(name).unwrap();
+        observes_feet_contacts_one_step_late(name, env, Planar::feet_contact_for_test);
+    }
+    observes_feet_contacts_one_step_late("ant", Spatial::ant(), Spatial::feet_contact_for_test);
+    let humanoid = Spatial::humanoid();
+    observes_feet_contacts_one_step_late("humanoid", humanoid, Spatial::feet_contact_for_test);
 }
