@@ -320,7 +320,8 @@ pub struct Planar {
     multibody: Option<MultibodyJointHandle>,
     /// The links' contacts with the floor, as Bullet keeps them.
     floor_contacts: FloorContacts,
-    /// The observed feet's contacts as the last step ended ([`walker_base::measure_feet_contact`]).
+    /// The observed feet's contacts as the last step ended
+    /// ([`walker_base::measure_feet_contact`]).
     feet_contact: Vec<f32>,
     /// Every link's pose before the step's last substep moved it: PyBullet's getLinkState
     /// returns the transforms Bullet cached then, and its observation and reward read them.
@@ -627,8 +628,8 @@ impl Planar {
     }
 
     /// Starts an episode from PyBullet's state (as the reset would, initial height included) and
-    /// writes its observation (with the state's feet contacts). A state of the wrong shape or with a non-finite value changes
-    /// nothing.
+    /// writes its observation (with the state's feet contacts). A state of the wrong shape or
+    /// with a non-finite value changes nothing.
     pub fn set_state(&mut self, state: &PlanarState, obs: &mut [f32]) -> Result<(), EnvError> {
         check_obs_len(&self.spec, obs)?;
         let n = self.robot.joints.len();

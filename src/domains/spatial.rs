@@ -457,7 +457,8 @@ pub struct Spatial {
     /// (reused: a step allocates nothing).
     angles_before: Vec<f32>,
     displacement: Vec<f32>,
-    /// The observed feet's contacts as the last step ended ([`walker_base::measure_feet_contact`]).
+    /// The observed feet's contacts as the last step ended
+    /// ([`walker_base::measure_feet_contact`]).
     feet_contact: Vec<f32>,
     /// Every link's pose before the step's last substep moved it: PyBullet's getLinkState
     /// returns the transforms Bullet cached then, and its body x and y (the progress reward)

@@ -183,9 +183,10 @@ macro_rules! touching_ground {
 }
 pub(super) use touching_ground;
 
-/// Sets `$env.feet_contact` (`$env` a walker's `&mut self`) to whether each observed foot touches the ground now. PyBullet
-/// measures the contacts after it has observed and scored a step, so its next observation (and
-/// the HalfCheetah's next alive bonus) shows them: one step late, and 0 after a reset.
+/// Sets `$env.feet_contact` (`$env` a walker's `&mut self`) to whether each observed foot
+/// touches the ground now. PyBullet measures the contacts after it has observed and scored a
+/// step, so its next observation (and the HalfCheetah's next alive bonus) shows them: one step
+/// late, and 0 after a reset.
 macro_rules! measure_feet_contact {
     ($env:expr) => {{
         let env = &mut *$env;
