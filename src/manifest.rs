@@ -12,8 +12,10 @@ pub const FORMAT_VERSION: u32 = 1;
 /// Version 2 adds `actor.kind` and `actor.mean_clip` (actors without a Gaussian head) and
 /// `obs_normalization`.
 pub const FORMAT_VERSION_ACTOR_KINDS: u32 = 2;
+/// Version 3 adds `critic.layer_norm` (critics with a layer norm after each hidden layer).
+pub const FORMAT_VERSION_CRITIC_NORMS: u32 = 3;
 /// The newest version this prac reads.
-pub const NEWEST_FORMAT_VERSION: u32 = FORMAT_VERSION_ACTOR_KINDS;
+pub const NEWEST_FORMAT_VERSION: u32 = FORMAT_VERSION_CRITIC_NORMS;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Manifest {
@@ -105,6 +107,12 @@ pub struct CriticSpec {
     pub n_critics: usize,
     pub hidden: Vec<usize>,
     pub activation: Activation,
+    /// A layer norm after each hidden layer, before its activation: PyTorch's
+    /// `Sequential(Linear, LayerNorm, ReLU, ..., Linear)`, so the k-th linear layer's tensors are
+    /// `critic.qf{i}.{3k}.*` and its norm's `critic.qf{i}.{3k+1}.weight` (scale) and `.bias`
+    /// (shift). Absent (false) in bundles without them.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub layer_norm: bool,
 }
 
 /// The dynamics model's normalisation: inputs are standardised with the obs and action
@@ -209,6 +217,15 @@ impl Manifest {
                 "obs_normalization",
                 format!(
                     "needs format_version {FORMAT_VERSION_ACTOR_KINDS}, the bundle says {}",
+                    self.format_version
+                ),
+            );
+        }
+        if self.format_version < FORMAT_VERSION_CRITIC_NORMS && self.critic.layer_norm {
+            return fail(
+                "critic.layer_norm",
+                format!(
+                    "needs format_version {FORMAT_VERSION_CRITIC_NORMS}, the bundle says {}",
                     self.format_version
                 ),
             );

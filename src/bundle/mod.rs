@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use sha2::{Digest, Sha256};
 
-use crate::nn::{Dense, Mlp};
+use crate::nn::{Dense, LayerNorm, Mlp};
 use crate::policy::{Actor, DynamicsModel, Policy};
 
 /// Key of the manifest JSON in `__metadata__`.
@@ -38,11 +38,22 @@ impl BundleError {
 }
 
 /// Names of the tensors of a network that SB3 builds as `nn.Sequential(Linear, act, Linear, ...)`:
-/// the i-th linear layer sits at index 2i.
-fn sequential_layer(prefix: &str, i: usize) -> (String, String) {
+/// the i-th linear layer sits at index 2i; with a layer norm after each hidden layer
+/// (`Linear, LayerNorm, act, ...`) at 3i, and its norm at 3i + 1.
+fn sequential_layer(prefix: &str, i: usize, layer_norm: bool) -> (String, String) {
+    let index = if layer_norm { 3 * i } else { 2 * i };
     (
-        format!("{prefix}.{}.weight", 2 * i),
-        format!("{prefix}.{}.bias", 2 * i),
+        format!("{prefix}.{index}.weight"),
+        format!("{prefix}.{index}.bias"),
+    )
+}
+
+/// Names of the scale and shift of the layer norm after hidden layer i
+/// ([`sequential_layer`]).
+fn sequential_norm(prefix: &str, i: usize) -> (String, String) {
+    (
+        format!("{prefix}.{}.weight", 3 * i + 1),
+        format!("{prefix}.{}.bias", 3 * i + 1),
     )
 }
 
@@ -252,19 +263,32 @@ fn check_declared_tensors(
                  prefix: &str,
                  input: usize,
                  hidden: &[usize],
-                 output: Option<usize>|
+                 output: Option<usize>,
+                 layer_norm: bool|
      -> Result<usize, BundleError> {
         let mut width = input;
         for (i, &out) in hidden.iter().chain(output.as_ref()).enumerate() {
-            let (w, b) = sequential_layer(prefix, i);
+            let (w, b) = sequential_layer(prefix, i, layer_norm);
             check(w, &[out, width])?;
             check(b, &[out])?;
+            if layer_norm && i < hidden.len() {
+                let (scale, shift) = sequential_norm(prefix, i);
+                check(scale, &[out])?;
+                check(shift, &[out])?;
+            }
             width = out;
         }
         Ok(width)
     };
     let (obs, act) = (manifest.obs_dim, manifest.act_dim);
-    let latent = chain(&mut check, ACTOR_TRUNK, obs, &manifest.actor.hidden, None)?;
+    let latent = chain(
+        &mut check,
+        ACTOR_TRUNK,
+        obs,
+        &manifest.actor.hidden,
+        None,
+        false,
+    )?;
     let heads: &[&str] = if manifest.actor.kind.is_gaussian() {
         &[ACTOR_MU, ACTOR_LOG_STD]
     } else {
@@ -282,10 +306,18 @@ fn check_declared_tensors(
             obs + act,
             &manifest.critic.hidden,
             Some(1),
+            manifest.critic.layer_norm,
         )?;
     }
     if let Some(spec) = &manifest.model {
-        chain(&mut check, MODEL_NET, obs + act, &spec.hidden, Some(obs))?;
+        chain(
+            &mut check,
+            MODEL_NET,
+            obs + act,
+            &spec.hidden,
+            Some(obs),
+            false,
+        )?;
     }
     if expected.len() < declared.len() {
         let mut extra: Vec<&String> = declared
@@ -362,11 +394,18 @@ pub fn from_bytes(bytes: &[u8], path: &Path) -> Result<Policy, BundleError> {
     let mut critics = Vec::with_capacity(manifest.critic.n_critics);
     for k in 0..manifest.critic.n_critics {
         let prefix = critic_prefix(k);
-        let layers = reader.chain(&prefix, obs + act, &manifest.critic.hidden, Some(1))?;
-        critics.push(
-            Mlp::new(obs + act, layers, manifest.critic.activation, false)
-                .map_err(|e| err(&prefix, e.to_string()))?,
-        );
+        let hidden = &manifest.critic.hidden;
+        let layer_norm = manifest.critic.layer_norm;
+        let layers = reader.chain_of(&prefix, obs + act, hidden, Some(1), layer_norm)?;
+        let mut critic = Mlp::new(obs + act, layers, manifest.critic.activation, false)
+            .map_err(|e| err(&prefix, e.to_string()))?;
+        if layer_norm {
+            let norms = reader.norms(&prefix, hidden)?;
+            critic = critic
+                .with_layer_norms(norms)
+                .map_err(|e| err(&prefix, e.to_string()))?;
+        }
+        critics.push(critic);
     }
     let model = match &manifest.model {
         None => None,
@@ -452,14 +491,38 @@ impl TensorReader<'_> {
         hidden: &[usize],
         output: Option<usize>,
     ) -> Result<Vec<Dense>, BundleError> {
+        self.chain_of(prefix, input, hidden, output, false)
+    }
+
+    /// The layers of `prefix.{0,3,6,..}` when `layer_norm`, else as [`TensorReader::chain`].
+    fn chain_of(
+        &self,
+        prefix: &str,
+        input: usize,
+        hidden: &[usize],
+        output: Option<usize>,
+        layer_norm: bool,
+    ) -> Result<Vec<Dense>, BundleError> {
         let mut layers = Vec::new();
         let mut width = input;
         for (i, &out) in hidden.iter().chain(output.as_ref()).enumerate() {
-            let (w, b) = sequential_layer(prefix, i);
+            let (w, b) = sequential_layer(prefix, i, layer_norm);
             layers.push(self.dense(&w, &b, out, width)?);
             width = out;
         }
         Ok(layers)
+    }
+
+    /// The layer norms of `prefix.{1,4,7,..}`, one per hidden layer.
+    fn norms(&self, prefix: &str, hidden: &[usize]) -> Result<Vec<LayerNorm>, BundleError> {
+        let mut norms = Vec::with_capacity(hidden.len());
+        for (i, &width) in hidden.iter().enumerate() {
+            let (scale, shift) = sequential_norm(prefix, i);
+            let scale = self.tensor(&scale, &[width])?;
+            let shift = self.tensor(&shift, &[width])?;
+            norms.push(LayerNorm::new(scale, shift).expect("both read at the layer's width"));
+        }
+        Ok(norms)
     }
 }
 
@@ -480,9 +543,15 @@ pub fn tensors(policy: &Policy) -> Vec<NamedTensor> {
         out.push((bias, vec![d.output_dim()], d.bias().as_slice().to_vec()));
     }
     fn push_chain(out: &mut Vec<NamedTensor>, prefix: &str, mlp: &Mlp) {
+        let layer_norm = !mlp.norms().is_empty();
         for (i, d) in mlp.layers().iter().enumerate() {
-            let (w, b) = sequential_layer(prefix, i);
+            let (w, b) = sequential_layer(prefix, i, layer_norm);
             push_layer(out, w, b, d);
+            if let Some(norm) = mlp.norms().get(i) {
+                let (scale, shift) = sequential_norm(prefix, i);
+                out.push((scale, vec![norm.dim()], norm.scale().to_vec()));
+                out.push((shift, vec![norm.dim()], norm.shift().to_vec()));
+            }
         }
     }
     let mut out = Vec::new();

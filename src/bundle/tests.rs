@@ -97,6 +97,75 @@ fn tensor_names_follow_sb3() {
     assert_eq!(shapes["model.net.4.weight"], vec![4, 6]);
 }
 
+/// The small policy with a layer norm after each of its critics' hidden layers.
+fn layer_norm_policy() -> Policy {
+    let mut policy = small_policy();
+    policy.manifest.format_version = crate::manifest::FORMAT_VERSION_CRITIC_NORMS;
+    policy.manifest.critic.layer_norm = true;
+    policy.critics = policy
+        .critics
+        .iter()
+        .map(|c| {
+            let norms = c.layers()[..c.layers().len() - 1]
+                .iter()
+                .enumerate()
+                .map(|(i, d)| {
+                    let w = d.output_dim();
+                    let scale = (0..w).map(|k| 0.5 + 0.1 * (k + i) as f32).collect();
+                    let shift = (0..w).map(|k| 0.05 * k as f32 - 0.2).collect();
+                    LayerNorm::new(scale, shift).unwrap()
+                })
+                .collect();
+            c.clone().with_layer_norms(norms).unwrap()
+        })
+        .collect();
+    policy
+}
+
+#[test]
+fn layer_norm_critics_round_trip_in_pytorchs_sequential_layout() {
+    let policy = layer_norm_policy();
+    let named = tensors(&policy);
+    let shapes: HashMap<&str, &Vec<usize>> = named.iter().map(|t| (t.0.as_str(), &t.1)).collect();
+    // Linear, LayerNorm, ReLU, Linear, LayerNorm, ReLU, Linear.
+    assert_eq!(shapes["critic.qf0.0.weight"], &vec![8, 6]);
+    assert_eq!(shapes["critic.qf0.1.weight"], &vec![8]);
+    assert_eq!(shapes["critic.qf1.4.bias"], &vec![8]);
+    assert_eq!(shapes["critic.qf1.6.weight"], &vec![1, 8]);
+    assert!(!shapes.contains_key("critic.qf0.2.weight"));
+    let loaded = from_bytes(&to_bytes(&policy).unwrap(), &path()).unwrap();
+    assert_eq!(loaded.manifest, policy.manifest);
+    let input = [0.1, -0.3, 0.5, 0.9, 0.2, -0.7];
+    for (ours, theirs) in policy.critics.iter().zip(&loaded.critics) {
+        assert_eq!(theirs.norms(), ours.norms());
+        let a = ours.forward_rows(&input, &mut ours.scratch())[0];
+        let b = theirs.forward_rows(&input, &mut theirs.scratch())[0];
+        assert_eq!(a, b);
+    }
+    // The norms change what the critics say (the test compares different networks).
+    let plain = small_policy();
+    let q = plain.critics[0].forward_rows(&input, &mut plain.critics[0].scratch())[0];
+    let normed = policy.critics[0].forward_rows(&input, &mut policy.critics[0].scratch())[0];
+    assert_ne!(q, normed);
+    // Bundles without norms keep their manifest as it was: no `layer_norm` key.
+    let json = serde_json::to_string(&small_policy().manifest).unwrap();
+    assert!(!json.contains("layer_norm"), "{json}");
+
+    // A manifest that claims norms needs version 3, and then names the first tensor it lacks.
+    let plain = small_policy();
+    let mut manifest = plain.manifest.clone();
+    manifest.critic.layer_norm = true;
+    let json = serde_json::to_string(&manifest).unwrap();
+    let e = load_error(&rebuild(&tensors(&plain), Some(&json)));
+    assert_eq!(e.field, "manifest.critic.layer_norm");
+    assert!(e.reason.contains("needs format_version 3"), "{e}");
+    manifest.format_version = crate::manifest::FORMAT_VERSION_CRITIC_NORMS;
+    let json = serde_json::to_string(&manifest).unwrap();
+    let e = load_error(&rebuild(&tensors(&plain), Some(&json)));
+    assert_eq!(e.field, "critic.qf0.1.weight");
+    assert!(e.reason.contains("missing"), "{e}");
+}
+
 #[test]
 fn a_missing_tensor_is_named() {
     let policy = small_policy();
@@ -454,8 +523,8 @@ fn actor_kinds_need_format_2_and_a_clip_only_where_it_means_something() {
             .contains("only for gaussian_sde actors")
     );
     let mut newer = small_policy();
-    newer.manifest.format_version = 3;
-    assert!(reason(newer).contains("this prac reads versions 1 to 2"));
+    newer.manifest.format_version = 4;
+    assert!(reason(newer).contains("this prac reads versions 1 to 3"));
     // A Gaussian actor's manifest says nothing of kinds: version-1 bytes stay as they were.
     let json = serde_json::to_string(&small_policy().manifest).unwrap();
     assert!(

@@ -95,6 +95,11 @@ pub struct TrainArgs {
     /// the way it started.
     #[arg(long)]
     pub norm_obs: bool,
+    /// A layer norm after each of the critics' hidden layers (for several gradient steps per
+    /// environment step, `--gradient-steps`); the bundle carries them. A run resumes the way
+    /// it started.
+    #[arg(long)]
+    pub critic_layer_norm: bool,
 }
 
 fn apply_overrides(config: &mut SacConfig, a: &TrainArgs) {
@@ -115,6 +120,7 @@ fn apply_overrides(config: &mut SacConfig, a: &TrainArgs) {
     set!(gradient_steps);
     set!(hidden);
     config.norm_obs |= a.norm_obs;
+    config.critic_layer_norm |= a.critic_layer_norm;
 }
 
 pub fn train(args: TrainArgs) -> anyhow::Result<()> {

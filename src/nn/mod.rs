@@ -283,14 +283,78 @@ impl Tile<'_> {
     }
 }
 
+/// PyTorch's `nn.LayerNorm` over each row: the row standardised by its own mean and (biased)
+/// variance plus `LAYER_NORM_EPS`, then scaled and shifted per feature.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LayerNorm {
+    scale: Vec<f32>,
+    shift: Vec<f32>,
+}
+
+/// PyTorch's and burn's default epsilon of a layer norm.
+pub const LAYER_NORM_EPS: f32 = 1e-5;
+
+impl LayerNorm {
+    /// A layer norm of `scale.len()` features; `shift` must be as long.
+    pub fn new(scale: Vec<f32>, shift: Vec<f32>) -> Result<LayerNorm, LayerNormError> {
+        if scale.len() != shift.len() {
+            return Err(LayerNormError::ShiftLength {
+                scale: scale.len(),
+                shift: shift.len(),
+            });
+        }
+        Ok(LayerNorm { scale, shift })
+    }
+    pub fn dim(&self) -> usize {
+        self.scale.len()
+    }
+    pub fn scale(&self) -> &[f32] {
+        &self.scale
+    }
+    pub fn shift(&self) -> &[f32] {
+        &self.shift
+    }
+
+    /// Normalises every row of `rows` ([n, dim] row-major) in place.
+    fn apply_rows(&self, rows: &mut [f32]) {
+        let d = self.dim();
+        for row in rows.chunks_exact_mut(d) {
+            let mean = row.iter().sum::<f32>() / d as f32;
+            let variance = row.iter().map(|v| (v - mean) * (v - mean)).sum::<f32>() / d as f32;
+            let inv = 1.0 / (variance + LAYER_NORM_EPS).sqrt();
+            for ((v, scale), shift) in row.iter_mut().zip(&self.scale).zip(&self.shift) {
+                *v = (*v - mean) * inv * scale + shift;
+            }
+        }
+    }
+}
+
+/// Layer norms that do not fit the chain they are given to.
+#[derive(Debug, thiserror::Error)]
+pub enum LayerNormError {
+    #[error("a layer norm's shift has {shift} features, its scale {scale}")]
+    ShiftLength { scale: usize, shift: usize },
+    #[error("{got} layer norms for {expected} hidden layers; a chain has one per hidden layer")]
+    Count { expected: usize, got: usize },
+    #[error("layer norm {index} has {got} features but hidden layer {index} gives {expected}")]
+    Width {
+        index: usize,
+        expected: usize,
+        got: usize,
+    },
+}
+
 /// A chain of dense layers. The activation follows every hidden layer, and the last layer too when
-/// `activate_output` is set (SB3's `latent_pi` ends in an activation, critics do not).
+/// `activate_output` is set (SB3's `latent_pi` ends in an activation, critics do not). A chain
+/// may normalise each hidden layer's output before its activation ([`Mlp::with_layer_norms`]).
 #[derive(Clone, Debug)]
 pub struct Mlp {
     input_dim: usize,
     layers: Vec<Dense>,
     activation: Activation,
     activate_output: bool,
+    /// Empty, or one per hidden layer.
+    norms: Vec<LayerNorm>,
 }
 
 /// Per-layer outputs of a forward; they grow to the largest batch seen and are reused.
@@ -336,7 +400,36 @@ impl Mlp {
             layers,
             activation,
             activate_output,
+            norms: Vec::new(),
         })
+    }
+
+    /// The chain with a layer norm after each hidden layer, before its activation (the
+    /// `Linear, LayerNorm, ReLU` blocks of layer-normalised critics).
+    pub fn with_layer_norms(mut self, norms: Vec<LayerNorm>) -> Result<Mlp, LayerNormError> {
+        let hidden = self.layers.len().saturating_sub(1);
+        if norms.len() != hidden {
+            return Err(LayerNormError::Count {
+                expected: hidden,
+                got: norms.len(),
+            });
+        }
+        for (index, (norm, dense)) in norms.iter().zip(&self.layers).enumerate() {
+            if norm.dim() != dense.output_dim() {
+                return Err(LayerNormError::Width {
+                    index,
+                    expected: dense.output_dim(),
+                    got: norm.dim(),
+                });
+            }
+        }
+        self.norms = norms;
+        Ok(self)
+    }
+
+    /// The hidden layers' norms (empty when the chain has none).
+    pub fn norms(&self) -> &[LayerNorm] {
+        &self.norms
     }
 
     pub fn input_dim(&self) -> usize {
@@ -388,6 +481,9 @@ impl Mlp {
             resize(out, n * dense.output_dim());
             let x = if i == 0 { inputs } else { &before[i - 1][..] };
             dense.forward_rows(x, out);
+            if let Some(norm) = self.norms.get(i) {
+                norm.apply_rows(out);
+            }
             if i + 1 < last || self.activate_output {
                 self.activation.apply(out);
             }
@@ -437,6 +533,85 @@ mod tests {
             false,
         )
         .unwrap()
+    }
+
+    #[test]
+    fn layer_norms_standardise_each_hidden_row_before_its_activation() {
+        let norm = |d: usize, seed: f32| {
+            let scale = (0..d)
+                .map(|i| 0.5 + ((i as f32 + seed) * 0.7).sin())
+                .collect();
+            let shift = (0..d).map(|i| ((i as f32 - seed) * 0.3).cos()).collect();
+            LayerNorm::new(scale, shift).unwrap()
+        };
+        let mlp = chain()
+            .with_layer_norms(vec![norm(7, 1.0), norm(6, 2.0)])
+            .unwrap();
+        // PyTorch's Linear -> LayerNorm -> ReLU blocks, in f64.
+        let reference = |x: &[f32]| -> Vec<f64> {
+            let mut v: Vec<f64> = x.iter().map(|&a| f64::from(a)).collect();
+            for (i, d) in mlp.layers().iter().enumerate() {
+                let mut out: Vec<f64> = (0..d.output_dim())
+                    .map(|r| {
+                        f64::from(d.bias[r])
+                            + (0..d.input_dim())
+                                .map(|c| f64::from(d.weight[(r, c)]) * v[c])
+                                .sum::<f64>()
+                    })
+                    .collect();
+                if let Some(n) = mlp.norms().get(i) {
+                    let mean = out.iter().sum::<f64>() / out.len() as f64;
+                    let var =
+                        out.iter().map(|o| (o - mean).powi(2)).sum::<f64>() / out.len() as f64;
+                    for (k, o) in out.iter_mut().enumerate() {
+                        let standard = (*o - mean) / (var + f64::from(LAYER_NORM_EPS)).sqrt();
+                        *o = standard * f64::from(n.scale()[k]) + f64::from(n.shift()[k]);
+                        *o = o.max(0.0);
+                    }
+                }
+                v = out;
+            }
+            v
+        };
+        let rows: Vec<f32> = (0..3 * 5)
+            .map(|i| ((i as f32) * 0.91).sin() * 2.0)
+            .collect();
+        let mut scratch = mlp.scratch_for(3);
+        let out = mlp.forward_rows(&rows, &mut scratch).to_vec();
+        for (r, x) in rows.chunks(5).enumerate() {
+            for (k, want) in reference(x).iter().enumerate() {
+                let got = f64::from(out[2 * r + k]);
+                assert!(
+                    (got - want).abs() < 1e-4,
+                    "row {r} output {k}: {got} against {want}"
+                );
+            }
+        }
+        // Without the norms the same chain gives something else.
+        let plain = chain()
+            .forward_rows(&rows, &mut chain().scratch_for(3))
+            .to_vec();
+        assert!(plain.iter().zip(&out).any(|(a, b)| (a - b).abs() > 1e-3));
+    }
+
+    #[test]
+    fn layer_norms_that_do_not_fit_are_rejected() {
+        let ones = |d: usize| LayerNorm::new(vec![1.0; d], vec![0.0; d]).unwrap();
+        let err = chain().with_layer_norms(vec![ones(7)]).unwrap_err();
+        assert!(
+            err.to_string()
+                .contains("1 layer norms for 2 hidden layers"),
+            "{err}"
+        );
+        let err = chain()
+            .with_layer_norms(vec![ones(7), ones(5)])
+            .unwrap_err();
+        assert!(
+            err.to_string().contains("layer norm 1 has 5 features"),
+            "{err}"
+        );
+        let err = LayerNorm::new(vec![1.0; 3], vec![0.0; 2]).unwrap_err();
+        assert!(err.to_string().contains("shift has 2 features"), "{err}");
     }
 
     #[test]

@@ -136,6 +136,7 @@ pub fn test_manifest(
             n_critics: 2,
             hidden: hidden.to_vec(),
             activation: Activation::Relu,
+            layer_norm: false,
         },
         model: Some(ModelSpec {
             hidden: model_hidden.to_vec(),

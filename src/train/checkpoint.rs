@@ -152,6 +152,14 @@ pub fn load(dir: &Path, sac: &mut Sac, model: &mut ModelTrainer) -> anyhow::Resu
             dir.display()
         );
     }
+    let layer_norm = state.options.sac.critic_layer_norm;
+    if layer_norm != sac.config.critic_layer_norm {
+        let was = if layer_norm { "with" } else { "without" };
+        anyhow::bail!(
+            "checkpoint {} was trained {was} --critic-layer-norm; resume it the same way",
+            dir.display()
+        );
+    }
     let file = |name: &str| dir.join(name);
     let p = file("actor.bpk");
     sac.actor = sac

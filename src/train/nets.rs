@@ -2,12 +2,12 @@
 //! networks of a [`Policy`], which the bundle format stores.
 
 use burn::module::{Module, Param};
-use burn::nn::Linear;
+use burn::nn::{LayerNorm, LayerNormConfig, Linear};
 use burn::tensor::activation::{relu, tanh};
 use burn::tensor::{Device, Tensor, TensorData};
 use rand::Rng;
 
-use crate::nn::{Dense, Mlp};
+use crate::nn::{self, Dense, Mlp};
 use crate::policy::{Actor, LOG_STD_MAX, LOG_STD_MIN};
 
 /// ln(2 pi) / 2, for Gaussian log-densities.
@@ -86,10 +86,26 @@ pub fn from_dense(dense: &Dense, device: &Device) -> Linear {
     )
 }
 
-/// Affine layers with ReLU between them (and after the last when `activate_output`).
+/// A burn layer norm with the given per-feature scale and shift.
+fn layer_norm_from(scale: &[f32], shift: &[f32], device: &Device) -> LayerNorm {
+    let d = scale.len();
+    let mut norm = LayerNormConfig::new(d)
+        .with_epsilon(f64::from(nn::LAYER_NORM_EPS))
+        .init(device);
+    let param =
+        |v: &[f32]| Param::from_tensor(Tensor::from_data(TensorData::new(v.to_vec(), [d]), device));
+    norm.gamma = param(scale);
+    norm.beta = Some(param(shift));
+    norm
+}
+
+/// Affine layers with ReLU between them (and after the last when `activate_output`), each
+/// hidden layer's output layer-normalised first when `norms` is not empty.
 #[derive(Module, Debug)]
 pub struct MlpNet {
     pub layers: Vec<Linear>,
+    /// Empty, or one per hidden layer (checkpoints of chains without them hold none).
+    pub norms: Vec<LayerNorm>,
 }
 
 impl MlpNet {
@@ -107,13 +123,33 @@ impl MlpNet {
             layers.push(linear(width, h, rng, device));
             width = h;
         }
-        MlpNet { layers }
+        MlpNet {
+            layers,
+            norms: Vec::new(),
+        }
+    }
+
+    /// The chain with a layer norm (scale 1, shift 0, as PyTorch starts one) after each hidden
+    /// layer.
+    pub fn with_layer_norms(mut self, device: &Device) -> MlpNet {
+        let hidden = self.layers.len().saturating_sub(1);
+        self.norms = self.layers[..hidden]
+            .iter()
+            .map(|l| {
+                let [_, width] = l.weight.val().dims();
+                layer_norm_from(&vec![1.0; width], &vec![0.0; width], device)
+            })
+            .collect();
+        self
     }
 
     pub fn forward(&self, mut x: Tensor<2>, activate_output: bool) -> Tensor<2> {
         let last = self.layers.len() - 1;
         for (i, layer) in self.layers.iter().enumerate() {
             x = layer.forward(x);
+            if let Some(norm) = self.norms.get(i) {
+                x = norm.forward(x);
+            }
             if i < last || activate_output {
                 x = relu(x);
             }
@@ -122,18 +158,40 @@ impl MlpNet {
     }
 
     pub fn to_mlp(&self, inputs: usize, activate_output: bool) -> Mlp {
-        Mlp::new(
+        let mlp = Mlp::new(
             inputs,
             self.layers.iter().map(to_dense).collect(),
             crate::nn::Activation::Relu,
             activate_output,
         )
-        .expect("a trained chain connects")
+        .expect("a trained chain connects");
+        if self.norms.is_empty() {
+            return mlp;
+        }
+        let norms = self
+            .norms
+            .iter()
+            .map(|n| {
+                let scale = values(n.gamma.val());
+                let shift = n
+                    .beta
+                    .as_ref()
+                    .map_or_else(|| vec![0.0; scale.len()], |b| values(b.val()));
+                nn::LayerNorm::new(scale, shift).expect("a trained norm's scale and shift agree")
+            })
+            .collect();
+        mlp.with_layer_norms(norms)
+            .expect("a trained chain's norms fit it")
     }
 
     pub fn from_mlp(mlp: &Mlp, device: &Device) -> MlpNet {
         MlpNet {
             layers: mlp.layers().iter().map(|d| from_dense(d, device)).collect(),
+            norms: mlp
+                .norms()
+                .iter()
+                .map(|n| layer_norm_from(n.scale(), n.shift(), device))
+                .collect(),
         }
     }
 }
@@ -202,17 +260,27 @@ pub struct CriticNet {
 }
 
 impl CriticNet {
+    /// `layer_norm` puts a layer norm after each hidden layer (the regularised critics of
+    /// sample-efficient SAC variants, which take more updates per step).
     pub fn new<R: Rng>(
         obs_dim: usize,
         act_dim: usize,
         hidden: &[usize],
         n_critics: usize,
+        layer_norm: bool,
         rng: &mut R,
         device: &Device,
     ) -> CriticNet {
         CriticNet {
             q: (0..n_critics)
-                .map(|_| MlpNet::new(obs_dim + act_dim, hidden, Some(1), rng, device))
+                .map(|_| {
+                    let q = MlpNet::new(obs_dim + act_dim, hidden, Some(1), rng, device);
+                    if layer_norm {
+                        q.with_layer_norms(device)
+                    } else {
+                        q
+                    }
+                })
                 .collect(),
         }
     }
@@ -249,15 +317,21 @@ impl CriticNet {
 
     /// Polyak averaging `self = (1 - tau) self + tau online`, without autodiff (a target net).
     pub fn soft_update(&mut self, online: &CriticNet, tau: f32) {
+        fn average<const D: usize>(t: &mut Param<Tensor<D>>, s: &Param<Tensor<D>>, tau: f32) {
+            let v = t.val().mul_scalar(1.0 - tau) + s.val().without_autodiff().mul_scalar(tau);
+            *t = Param::from_tensor(v);
+        }
         for (target, source) in self.q.iter_mut().zip(&online.q) {
             for (t, s) in target.layers.iter_mut().zip(&source.layers) {
-                let w = t.weight.val().mul_scalar(1.0 - tau)
-                    + s.weight.val().without_autodiff().mul_scalar(tau);
-                t.weight = Param::from_tensor(w);
+                average(&mut t.weight, &s.weight, tau);
                 if let (Some(tb), Some(sb)) = (&mut t.bias, &s.bias) {
-                    let b = tb.val().mul_scalar(1.0 - tau)
-                        + sb.val().without_autodiff().mul_scalar(tau);
-                    *tb = Param::from_tensor(b);
+                    average(tb, sb, tau);
+                }
+            }
+            for (t, s) in target.norms.iter_mut().zip(&source.norms) {
+                average(&mut t.gamma, &s.gamma, tau);
+                if let (Some(tb), Some(sb)) = (&mut t.beta, &s.beta) {
+                    average(tb, sb, tau);
                 }
             }
         }

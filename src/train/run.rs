@@ -20,8 +20,8 @@ use super::model::ModelTrainer;
 use super::options::{Progress, TrainOptions};
 use super::sac::{Batch, Sac, SacConfig, SacLosses};
 use crate::bundle::{
-    ActorKind, ActorSpec, CriticSpec, FORMAT_VERSION, FORMAT_VERSION_ACTOR_KINDS, Manifest,
-    ModelSpec, Provenance, QAggregation, ValueScale,
+    ActorKind, ActorSpec, CriticSpec, FORMAT_VERSION, FORMAT_VERSION_ACTOR_KINDS,
+    FORMAT_VERSION_CRITIC_NORMS, Manifest, ModelSpec, Provenance, QAggregation, ValueScale,
 };
 use crate::domains::{self, Env, EnvSpec, EpisodeTotals};
 use crate::eval::{self, ModelError, Trajectory};
@@ -79,6 +79,7 @@ pub fn manifest(
             n_critics: config.n_critics,
             hidden: config.hidden.clone(),
             activation: Activation::Relu,
+            layer_norm: config.critic_layer_norm,
         },
         model: Some(ModelSpec {
             hidden: config.model_hidden.clone(),
@@ -107,6 +108,9 @@ pub fn snapshot(sac: &Sac, model: &ModelTrainer, spec: &EnvSpec, steps: u64, see
     if sac.config.norm_obs {
         manifest.format_version = FORMAT_VERSION_ACTOR_KINDS;
         manifest.obs_normalization = Some(model.stats.obs.obs_normalization());
+    }
+    if sac.config.critic_layer_norm {
+        manifest.format_version = FORMAT_VERSION_CRITIC_NORMS;
     }
     Policy {
         manifest,

@@ -35,6 +35,11 @@ pub struct SacConfig {
     /// the statistics as its `obs_normalization`. Off by default (absent in older checkpoints).
     #[serde(default)]
     pub norm_obs: bool,
+    /// A layer norm after each of the critics' hidden layers: the regularised critics with which
+    /// recent sample-efficient SAC variants take several gradient steps per environment step.
+    /// Off by default (absent in older checkpoints).
+    #[serde(default)]
+    pub critic_layer_norm: bool,
 }
 
 impl Default for SacConfig {
@@ -55,6 +60,7 @@ impl Default for SacConfig {
             model_hidden: vec![64, 64, 64, 64],
             model_learning_rate: 1e-4,
             norm_obs: false,
+            critic_layer_norm: false,
         }
     }
 }
@@ -162,6 +168,7 @@ impl Sac {
             act_dim,
             &config.hidden,
             config.n_critics,
+            config.critic_layer_norm,
             rng,
             &device,
         );

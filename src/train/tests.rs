@@ -540,3 +540,80 @@ fn evaluations_record_falls_distance_and_time_and_widen_an_older_csv() {
     };
     assert!(e.to_string().contains("not a start of"), "{e}");
 }
+
+#[test]
+fn layer_norm_critics_ship_in_pytorchs_layout_and_resume_only_with_the_flag() {
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let spec = domains::make("pendulum").unwrap().spec().clone();
+    let (od, ad) = (spec.obs_dim, spec.act_dim);
+    let config = SacConfig {
+        critic_layer_norm: true,
+        learning_rate: 1e-2,
+        ..small_config()
+    };
+    let mut sac = Sac::new(config, od, ad, &mut rng);
+    let b = batch(&mut rng, 32, od, ad);
+    let noise = normals(&mut rng, 2 * 32 * ad);
+    for _ in 0..5 {
+        sac.update(&b, &noise);
+    }
+    // The updates moved the norms' scales, and the target's by tau of the way.
+    let online = sac.critic.to_mlps(od + ad);
+    let target = sac.critic_target.to_mlps(od + ad);
+    let scale = online[0].norms()[0].scale()[0];
+    assert!((scale - 1.0).abs() > 1e-3, "scale {scale}");
+    let target_scale = target[0].norms()[0].scale()[0];
+    assert!(target_scale != 1.0 && (target_scale - 1.0).abs() < (scale - 1.0).abs());
+
+    let model = ModelTrainer::new(od, ad, &[8, 8], 1e-4, &mut rng, &sac.device);
+    let policy = snapshot(&sac, &model, &spec, 0, 0);
+    assert!(policy.manifest.critic.layer_norm);
+    assert_eq!(policy.manifest.format_version, 3);
+    let names: Vec<String> = crate::bundle::tensors(&policy)
+        .into_iter()
+        .map(|(name, ..)| name)
+        .collect();
+    for name in [
+        "critic.qf1.1.weight",
+        "critic.qf1.4.bias",
+        "critic.qf1.6.weight",
+    ] {
+        assert!(names.iter().any(|n| n == name), "{name} not in {names:?}");
+    }
+    let bytes = crate::bundle::to_bytes(&policy).unwrap();
+    let loaded = crate::bundle::from_bytes(&bytes, std::path::Path::new("t")).unwrap();
+    let (obs, action) = ([0.3f32, -0.2, 0.7], [0.4f32]);
+    let theirs = sac.critic.forward(
+        matrix(&obs, 1, od, &sac.device),
+        matrix(&action, 1, ad, &sac.device),
+    );
+    let input = [obs.as_slice(), action.as_slice()].concat();
+    for (critic, q) in loaded.critics.iter().zip(theirs) {
+        let ours = critic.forward_rows(&input, &mut critic.scratch())[0];
+        assert!((ours - rows(q)[0]).abs() < 1e-4, "{ours}");
+    }
+
+    // A run resumes only the way it started.
+    let dir = tempfile::tempdir().unwrap();
+    let mut options = TrainOptions::new("pendulum", &dir.path().join("p.safetensors"));
+    options.steps = 300;
+    options.eval_every = 1_000_000;
+    options.eval_episodes = 1;
+    options.value_episodes = 1;
+    options.progress = false;
+    options.sac.critic_layer_norm = true;
+    let mut trainer = Trainer::new(options.clone(), false).unwrap();
+    trainer.run().unwrap();
+    trainer.checkpoint().unwrap();
+    let mut plain = options.clone();
+    plain.sac.critic_layer_norm = false;
+    plain.steps = 400;
+    let Err(e) = Trainer::new(plain, true) else {
+        panic!("resumed without --critic-layer-norm");
+    };
+    assert!(e.to_string().contains("with --critic-layer-norm"), "{e}");
+    options.steps = 400;
+    let mut resumed = Trainer::new(options, true).unwrap();
+    resumed.run().unwrap();
+    assert_eq!(resumed.progress.step, 400);
+}

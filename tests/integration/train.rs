@@ -115,6 +115,8 @@ fn a_killed_run_resumes_from_its_checkpoint() {
     assert!(checkpoint_step(&ckpt) == Some(1600));
 }
 
+/// Also with layer-norm critics taking two gradient steps per environment step: the plans are
+/// judged by those critics, and the bundle carries them through fit-model.
 #[test]
 fn training_with_prac_commits_to_plans_and_fit_model_fits_a_model() {
     let dir = tempfile::tempdir().unwrap();
@@ -137,6 +139,9 @@ fn training_with_prac_commits_to_plans_and_fit_model_fits_a_model() {
             "--value-scale=-100,-300",
             "--value-episodes",
             "2",
+            "--critic-layer-norm",
+            "--gradient-steps",
+            "2",
             "--quiet",
             "--out",
             out.to_str().unwrap(),
@@ -148,6 +153,9 @@ fn training_with_prac_commits_to_plans_and_fit_model_fits_a_model() {
         "{}",
         String::from_utf8_lossy(&run.stderr)
     );
+    let trained = prac::bundle::load(&out).unwrap();
+    assert!(trained.manifest.critic.layer_norm);
+    assert!(trained.critics.iter().all(|c| c.norms().len() == 2));
     let rows = curve(&dir.path().join("p.train.csv"));
     // Before learning starts actions are random (forecast 1); after, eps = 10 keeps plans.
     assert_eq!(rows[0].2, 1.0);
@@ -219,7 +227,9 @@ fn training_with_prac_commits_to_plans_and_fit_model_fits_a_model() {
     assert_eq!(report["heldout_transitions"], 200);
     assert!(one_step < 0.1, "{report}");
     assert!(ten_step > one_step, "{report}");
-    assert!(prac::bundle::load(&fitted).unwrap().model.is_some());
+    let refitted = prac::bundle::load(&fitted).unwrap();
+    assert!(refitted.model.is_some());
+    assert_eq!(refitted.critics[1].norms(), trained.critics[1].norms());
     // Split by action: 160 held-out rows acted as the policy, 40 explored; every window is in
     // exactly one group.
     let split = &report["after_by_action"];

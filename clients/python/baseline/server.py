@@ -44,13 +44,31 @@ def _activation(name: str) -> Any:
     return {"relu": lambda x: np.maximum(x, 0, out=x), "tanh": lambda x: np.tanh(x, out=x)}[name.lower()]
 
 
+LAYER_NORM_EPS = 1e-5  # PyTorch's nn.LayerNorm default
+
+
 class Mlp:
     """Linear layers [out, in] (PyTorch layout, kept transposed for x @ W), activation between
-    them, and after the last one too when `last_activation`."""
+    them, and after the last one too when `last_activation`. With `layer_norm` the network is
+    nn.Sequential(Linear, LayerNorm, act, ..., Linear): linear layer i at index 3i, its norm at
+    3i + 1, normalising each hidden layer's output before the activation."""
 
-    def __init__(self, tensors: dict[str, np.ndarray], prefix: str, layers: int, activation: str, last_activation: bool):
-        self.weights = [np.ascontiguousarray(tensors[f"{prefix}.{2 * i}.weight"].T, dtype=F32) for i in range(layers)]
-        self.biases = [tensors[f"{prefix}.{2 * i}.bias"].astype(F32) for i in range(layers)]
+    def __init__(
+        self,
+        tensors: dict[str, np.ndarray],
+        prefix: str,
+        layers: int,
+        activation: str,
+        last_activation: bool,
+        layer_norm: bool = False,
+    ):
+        stride = 3 if layer_norm else 2
+        self.weights = [np.ascontiguousarray(tensors[f"{prefix}.{stride * i}.weight"].T, dtype=F32) for i in range(layers)]
+        self.biases = [tensors[f"{prefix}.{stride * i}.bias"].astype(F32) for i in range(layers)]
+        self.norms = [
+            (tensors[f"{prefix}.{3 * i + 1}.weight"].astype(F32), tensors[f"{prefix}.{3 * i + 1}.bias"].astype(F32))
+            for i in range(layers - 1 if layer_norm else 0)
+        ]
         self.act = _activation(activation)
         self.last_activation = last_activation
 
@@ -59,6 +77,11 @@ class Mlp:
         for i, (w, b) in enumerate(zip(self.weights, self.biases)):
             x = x @ w
             x += b
+            if i < len(self.norms):
+                scale, shift = self.norms[i]
+                mean = x.mean(axis=-1, keepdims=True)
+                var = ((x - mean) ** 2).mean(axis=-1, keepdims=True)
+                x = (x - mean) / np.sqrt(var + LAYER_NORM_EPS) * scale + shift
             if i < n - 1 or self.last_activation:
                 x = self.act(x)
         return x
@@ -80,8 +103,10 @@ class Policy:
         self.mu_w = np.ascontiguousarray(tensors["actor.mu.weight"].T, dtype=F32)
         self.mu_b = tensors["actor.mu.bias"].astype(F32)
         critic_layers = len(m["critic"]["hidden"]) + 1
+        critic_norm = bool(m["critic"].get("layer_norm", False))
         self.critics = [
-            Mlp(tensors, f"critic.qf{k}", critic_layers, m["critic"]["activation"], False) for k in range(m["critic"]["n_critics"])
+            Mlp(tensors, f"critic.qf{k}", critic_layers, m["critic"]["activation"], False, critic_norm)
+            for k in range(m["critic"]["n_critics"])
         ]
         self.mean_q = m.get("q_aggregation", "min") == "mean"
         spec = m["model"]

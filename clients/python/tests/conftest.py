@@ -7,8 +7,9 @@ import pathlib
 import signal
 import subprocess
 import time
-from typing import Callable, Iterator
+from typing import Any, Callable, Iterator
 
+import numpy as np
 import pytest
 
 from prac_client import Client, ServerUnavailable, TlsConfig
@@ -27,8 +28,11 @@ def prac_bin() -> str:
     return str(path)
 
 
-def write_toy_bundle(directory: pathlib.Path, name: str = "pendulum", *, model: bool = True, seed: int = 1) -> pathlib.Path:
-    """A random Pendulum-shaped policy: obs 3, act 1 in [-2, 2], value scale (10, -10)."""
+def write_toy_bundle(
+    directory: pathlib.Path, name: str = "pendulum", *, model: bool = True, seed: int = 1, layer_norm: bool = False
+) -> pathlib.Path:
+    """A random Pendulum-shaped policy: obs 3, act 1 in [-2, 2], value scale (10, -10); with
+    `layer_norm`, its critics normalise each hidden layer (with_layer_norm_critics)."""
     state = random_sb3_state_dict(3, 1, [32, 32], seed=seed)
     tensors, manifest = from_sb3_state_dict(
         state,
@@ -40,9 +44,28 @@ def write_toy_bundle(directory: pathlib.Path, name: str = "pendulum", *, model: 
         value_scale=(10.0, -10.0),
         model=random_model(3, 1, [16, 16], seed=seed) if model else None,
     )
+    if layer_norm:
+        tensors, manifest = with_layer_norm_critics(dict(tensors), dict(manifest))
     path = directory / f"{name}.safetensors"
     write_bundle(path, tensors, manifest)
     return path
+
+
+def with_layer_norm_critics(tensors: dict[str, Any], manifest: dict[str, Any], *, seed: int = 2) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The same bundle with a layer norm after each of its critics' hidden layers, in PyTorch's
+    nn.Sequential(Linear, LayerNorm, act, ...) layout: linear layer i at 3i, its norm at 3i + 1."""
+    rng = np.random.default_rng(seed)
+    hidden = manifest["critic"]["hidden"]
+    out = {k: v for k, v in tensors.items() if not k.startswith("critic.")}
+    for k in range(manifest["critic"]["n_critics"]):
+        for i in range(len(hidden) + 1):
+            for part in ("weight", "bias"):
+                out[f"critic.qf{k}.{3 * i}.{part}"] = tensors[f"critic.qf{k}.{2 * i}.{part}"]
+        for i, width in enumerate(hidden):
+            out[f"critic.qf{k}.{3 * i + 1}.weight"] = rng.uniform(0.5, 1.5, width).astype(np.float32)
+            out[f"critic.qf{k}.{3 * i + 1}.bias"] = rng.uniform(-0.3, 0.3, width).astype(np.float32)
+    manifest = {**manifest, "format_version": 3, "critic": {**manifest["critic"], "layer_norm": True}}
+    return out, manifest
 
 
 class Server:

@@ -12,10 +12,23 @@ import numpy as np
 
 from prac_client import Client
 
-from conftest import REPO, Server
+from conftest import REPO, Server, write_toy_bundle
 
 
 def test_the_baseline_answers_as_prac_serve_does(bundles: pathlib.Path, server: Server) -> None:
+    answers_alike(bundles, server)
+
+
+def test_the_baseline_answers_as_prac_serve_does_with_layer_norm_critics(tmp_path: pathlib.Path) -> None:
+    write_toy_bundle(tmp_path, layer_norm=True)
+    server = Server(tmp_path)
+    try:
+        answers_alike(tmp_path, server)
+    finally:
+        server.stop()
+
+
+def answers_alike(bundles: pathlib.Path, server: Server) -> None:
     baseline = subprocess.Popen(
         [sys.executable, str(REPO / "clients" / "python" / "baseline" / "server.py"), "--bundles", str(bundles), "--listen", "127.0.0.1:0"],
         stdout=subprocess.PIPE,
