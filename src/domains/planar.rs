@@ -848,12 +848,12 @@ impl Env for Planar {
     fn step(&mut self, action: &[f32], obs: &mut [f32]) -> Result<Transition, EnvError> {
         check_obs_len(&self.spec, obs)?;
         let a = self.episode.begin_step(&self.spec, action)?;
-        for substep in 0..BULLET_SUBSTEPS {
-            if substep + 1 == BULLET_SUBSTEPS {
-                self.remember_link_poses();
-            }
+        for _ in 1..BULLET_SUBSTEPS {
             self.bullet_substep(&a);
         }
+        // What the observation reads: the poses the last substep starts from.
+        self.remember_link_poses();
+        self.bullet_substep(&a);
         let (z, pitch) = self.observe(obs);
         let (alive, ends) = self.alive_bonus(z, pitch, &self.feet_contact);
         let potential = self.potential();

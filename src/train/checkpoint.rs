@@ -152,13 +152,23 @@ pub fn load(dir: &Path, sac: &mut Sac, model: &mut ModelTrainer) -> anyhow::Resu
             dir.display()
         );
     }
-    let layer_norm = state.options.sac.critic_layer_norm;
-    if layer_norm != sac.config.critic_layer_norm {
-        let was = if layer_norm { "with" } else { "without" };
-        anyhow::bail!(
-            "checkpoint {} was trained {was} --critic-layer-norm; resume it the same way",
-            dir.display()
-        );
+    // Flags that shape the networks or what they see: a run resumes the way it started.
+    let (saved, now) = (&state.options.sac, &sac.config);
+    for (flag, was_on, is_on) in [
+        ("--norm-obs", saved.norm_obs, now.norm_obs),
+        (
+            "--critic-layer-norm",
+            saved.critic_layer_norm,
+            now.critic_layer_norm,
+        ),
+    ] {
+        if was_on != is_on {
+            let was = if was_on { "with" } else { "without" };
+            anyhow::bail!(
+                "checkpoint {} was trained {was} {flag}; resume it the same way",
+                dir.display()
+            );
+        }
     }
     let file = |name: &str| dir.join(name);
     let p = file("actor.bpk");

@@ -262,17 +262,6 @@ impl Trainer {
         let mut buffer = None;
         if resumed {
             let saved = checkpoint::load(&options.checkpoint_dir, &mut sac, &mut model)?;
-            if saved.options.sac.norm_obs != options.sac.norm_obs {
-                let was = if saved.options.sac.norm_obs {
-                    "with"
-                } else {
-                    "without"
-                };
-                bail!(
-                    "checkpoint {} was trained {was} --norm-obs; resume it the same way",
-                    options.checkpoint_dir.display()
-                );
-            }
             if saved.options.domain != options.domain {
                 bail!(
                     "checkpoint {} is for domain '{}', not '{}'",

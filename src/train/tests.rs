@@ -21,6 +21,17 @@ fn small_config() -> SacConfig {
     }
 }
 
+/// Pendulum training options for a quick run into `out`: no evaluations along the way, one
+/// episode for the final one and for V_pi and V_rand, no progress bar.
+fn quick_options(out: &std::path::Path) -> TrainOptions {
+    let mut options = TrainOptions::new("pendulum", out);
+    options.eval_every = 1_000_000;
+    options.eval_episodes = 1;
+    options.value_episodes = 1;
+    options.progress = false;
+    options
+}
+
 fn normals(rng: &mut ChaCha8Rng, n: usize) -> Vec<f32> {
     (0..n).map(|_| rng.sample(StandardNormal)).collect()
 }
@@ -280,11 +291,7 @@ fn a_checkpoint_restores_the_exact_learner() {
 #[test]
 fn a_resume_counts_the_restored_transitions_toward_the_warm_up() {
     let dir = tempfile::tempdir().unwrap();
-    let mut options = TrainOptions::new("pendulum", &dir.path().join("p.safetensors"));
-    options.eval_every = 1_000_000;
-    options.eval_episodes = 1;
-    options.value_episodes = 1;
-    options.progress = false;
+    let options = quick_options(&dir.path().join("p.safetensors"));
     let warmup = options
         .sac
         .learning_starts
@@ -446,12 +453,9 @@ fn norm_obs_policies_normalise_as_the_learner_did() {
 fn norm_obs_runs_ship_their_statistics_and_resume_only_with_the_flag() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("p.safetensors");
-    let mut options = TrainOptions::new("pendulum", &out);
+    let mut options = quick_options(&out);
     options.steps = 600;
-    options.eval_every = 1_000_000;
-    options.eval_episodes = 1;
     options.value_episodes = 2;
-    options.progress = false;
     options.sac.norm_obs = true;
     let mut trainer = Trainer::new(options.clone(), false).unwrap();
     trainer.run().unwrap();
@@ -595,12 +599,8 @@ fn layer_norm_critics_ship_in_pytorchs_layout_and_resume_only_with_the_flag() {
 
     // A run resumes only the way it started.
     let dir = tempfile::tempdir().unwrap();
-    let mut options = TrainOptions::new("pendulum", &dir.path().join("p.safetensors"));
+    let mut options = quick_options(&dir.path().join("p.safetensors"));
     options.steps = 300;
-    options.eval_every = 1_000_000;
-    options.eval_episodes = 1;
-    options.value_episodes = 1;
-    options.progress = false;
     options.sac.critic_layer_norm = true;
     let mut trainer = Trainer::new(options.clone(), false).unwrap();
     trainer.run().unwrap();
