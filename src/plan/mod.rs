@@ -105,6 +105,11 @@ impl Commitment {
         &self.plan
     }
 
+    /// The committed plan, to adjust in place after a commit.
+    pub fn plan_mut(&mut self) -> &mut Plan {
+        &mut self.plan
+    }
+
     /// Takes over a plan committed elsewhere (a resumed session).
     pub fn replace(&mut self, plan: Plan) {
         self.plan = plan;
@@ -256,6 +261,10 @@ impl Plan {
     }
     pub fn decided_at(&self, i: usize) -> u64 {
         self.decided_at[i]
+    }
+    /// Every action of the plan, entry after entry.
+    pub fn actions_mut(&mut self) -> &mut [f32] {
+        &mut self.actions
     }
     /// The entries from `start` on.
     pub fn tail(&self, start: usize) -> PlanView<'_> {

@@ -72,7 +72,20 @@ impl Policy {
     pub fn scale_action(&self, action: &[f32], out: &mut [f32]) {
         let (lo, hi) = (&self.manifest.action_low, &self.manifest.action_high);
         for i in 0..action.len() {
-            out[i] = 2.0 * (action[i] - lo[i]) / (hi[i] - lo[i]) - 1.0;
+            out[i] = scale_component(lo[i], hi[i], action[i]);
+        }
+    }
+
+    /// Moves each squashed action of `actions` (entries of act_dim values) to the nearest value
+    /// that survives the trip to the action bounds and back: `scale(unscale(s)) == s` in f32. A
+    /// client holds its plan in the action bounds; resumed from it, the plan's squashed actions
+    /// are then the very ones the uninterrupted session holds. Allocates nothing.
+    pub fn make_actions_round_trip(&self, actions: &mut [f32]) {
+        let (lo, hi) = (&self.manifest.action_low, &self.manifest.action_high);
+        let act_dim = lo.len();
+        for (k, s) in actions.iter_mut().enumerate() {
+            let i = k % act_dim;
+            *s = round_trip_fixed_point(lo[i], hi[i], *s);
         }
     }
 
@@ -301,8 +314,31 @@ impl ObsScale {
 /// Maps an action from [-1, 1] to the bounds [low, high] (the policy's or the domain's).
 pub fn unscale_action(low: &[f32], high: &[f32], squashed: &[f32], out: &mut [f32]) {
     for i in 0..squashed.len() {
-        out[i] = low[i] + 0.5 * (squashed[i] + 1.0) * (high[i] - low[i]);
+        out[i] = unscale_component(low[i], high[i], squashed[i]);
     }
+}
+
+fn unscale_component(low: f32, high: f32, squashed: f32) -> f32 {
+    low + 0.5 * (squashed + 1.0) * (high - low)
+}
+
+fn scale_component(low: f32, high: f32, action: f32) -> f32 {
+    2.0 * (action - low) / (high - low) - 1.0
+}
+
+/// The first `s` from `squashed` on with `scale(unscale(s)) == s`. Both maps are monotone in f32
+/// (each operation rounds to nearest), so iterating their composition walks one way to a fixed
+/// point, in one or two steps in practice.
+fn round_trip_fixed_point(low: f32, high: f32, squashed: f32) -> f32 {
+    let mut s = squashed;
+    for _ in 0..32 {
+        let back = scale_component(low, high, unscale_component(low, high, s));
+        if back == s || !back.is_finite() {
+            return s;
+        }
+        s = back;
+    }
+    s
 }
 
 #[cfg(test)]
@@ -310,6 +346,43 @@ mod tests {
     use super::*;
     use crate::nn::Activation;
     use crate::testing::test_manifest;
+
+    #[test]
+    fn round_tripped_actions_come_back_from_the_bounds_unchanged() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let mut moved = 0;
+        for (low, high) in [
+            (-1.0f32, 1.0f32),
+            (-2.0, 2.0),
+            (0.3, 5.7),
+            (-0.4, 0.4),
+            (-3.0, 1.0),
+        ] {
+            for _ in 0..20_000 {
+                // tanh outputs: many tiny, many near the bounds.
+                let s: f32 = match rng.random_range(0..3) {
+                    0 => rng.random_range(-1.0..=1.0),
+                    1 => rng.random_range(-1e-6..1e-6),
+                    _ => (rng.random_range(-8.0f32..8.0)).tanh(),
+                };
+                let fixed = round_trip_fixed_point(low, high, s);
+                let action = unscale_component(low, high, fixed);
+                assert_eq!(
+                    scale_component(low, high, action),
+                    fixed,
+                    "{s} in [{low}, {high}]"
+                );
+                assert!(
+                    (fixed - s).abs() <= 4e-7 * (1.0 + (high - low)),
+                    "{s} -> {fixed}"
+                );
+                moved += usize::from(fixed != s);
+            }
+        }
+        // The plain trip does move some actions: the fixed point is what makes resuming exact.
+        assert!(moved > 0);
+    }
 
     #[test]
     fn batched_and_single_evaluations_agree() {

@@ -8,6 +8,7 @@ use anyhow::Context;
 use serde::Deserialize;
 
 use super::batch::BatchConfig;
+use super::intake::{RequestLimits, SMALL_MESSAGE};
 use super::transport::Limits;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize, clap::ValueEnum)]
@@ -81,8 +82,21 @@ settings! {
         "Most sessions open at once.";
     session_ttl: Duration = "5m", duration,
         "A session unused for this long is evicted, e.g. \"5m\".";
-    max_message_bytes: usize = "4194304", number::<usize>,
-        "Largest gRPC message accepted or sent, in bytes.";
+    max_message_bytes: usize = "none", number::<usize>,
+        "Largest gRPC message accepted or sent, in bytes; none (the default) accepts the \
+        largest request the loaded bundles allow (an OpenSession resuming a plan of \
+        --max-horizon-limit actions, at least 16 KiB; it follows reloads) and sends up to \
+        4 MiB.";
+    request_timeout: Duration = "10s", duration,
+        "A unary request must arrive whole, and each message of a streamed one must \
+        complete once begun, within this (or the call's deadline if sooner); past it the \
+        call is answered DEADLINE_EXCEEDED.";
+    max_request_bytes_per_connection: usize = "1048576", number::<usize>,
+        "Declared bytes of unfinished request messages one connection may hold; a call \
+        past it is answered RESOURCE_EXHAUSTED.";
+    max_request_bytes_total: usize = "67108864", number::<usize>,
+        "Declared bytes of unfinished request messages all connections together may hold; \
+        past it new calls are answered RESOURCE_EXHAUSTED.";
     drain_timeout: Duration = "10s", duration,
         "On SIGINT/SIGTERM, how long to wait for in-flight work before exiting.";
     log_format: LogFormat = "text", log_format,
@@ -179,7 +193,6 @@ pub struct ServeConfig {
     pub bundles: PathBuf,
     pub max_sessions: usize,
     pub session_ttl: Duration,
-    pub max_message_bytes: usize,
     pub drain_timeout: Duration,
     pub log_format: LogFormat,
     pub strict: bool,
@@ -193,6 +206,8 @@ pub struct ServeConfig {
     pub metrics_listen: Option<SocketAddr>,
     /// Limits on client connections (the metrics endpoint's too).
     pub connections: Limits,
+    /// Limits on requests in transit.
+    pub requests: RequestLimits,
 }
 
 impl Default for ServeConfig {
@@ -259,7 +274,6 @@ impl ServeConfig {
             bundles: s.bundles.expect(has),
             max_sessions: s.max_sessions.expect(has),
             session_ttl: s.session_ttl.expect(has),
-            max_message_bytes: s.max_message_bytes.expect(has),
             drain_timeout: s.drain_timeout.expect(has),
             log_format: s.log_format.expect(has),
             strict: s.strict,
@@ -285,15 +299,32 @@ impl ServeConfig {
                 keepalive_interval: s.keepalive_interval.and_then(nonzero),
                 keepalive_timeout: s.keepalive_timeout.expect(has),
             },
+            requests: RequestLimits {
+                request_timeout: s.request_timeout.expect(has),
+                bytes_per_connection: s.max_request_bytes_per_connection.expect(has),
+                bytes_total: s.max_request_bytes_total.expect(has),
+                max_message_bytes: s.max_message_bytes,
+            },
         };
         anyhow::ensure!(config.max_sessions > 0, "max_sessions must be at least 1");
         anyhow::ensure!(
             config.max_horizon_limit > 0,
             "max_horizon_limit must be at least 1"
         );
+        let requests = &config.requests;
         anyhow::ensure!(
-            config.max_message_bytes >= 1024,
+            requests.max_message_bytes.is_none_or(|n| n >= 1024),
             "max_message_bytes must be at least 1024"
+        );
+        anyhow::ensure!(
+            !requests.request_timeout.is_zero(),
+            "request_timeout must be positive"
+        );
+        anyhow::ensure!(
+            requests.bytes_per_connection >= SMALL_MESSAGE
+                && requests.bytes_total >= requests.bytes_per_connection,
+            "max_request_bytes_per_connection must be at least {SMALL_MESSAGE}, and \
+             max_request_bytes_total at least max_request_bytes_per_connection"
         );
         anyhow::ensure!(
             !config.session_ttl.is_zero(),
@@ -359,7 +390,7 @@ mod tests {
             "[default: bundles]",
             "[default: 5m]",
             "[default: none]",
-            "[default: 4194304]",
+            "[default: 1048576]",
         ] {
             assert!(help.contains(shown), "{shown} missing from:\n{help}");
         }
@@ -373,7 +404,10 @@ mod tests {
         assert_eq!(c.bundles, PathBuf::from("bundles"));
         assert_eq!(c.max_sessions, 1024);
         assert_eq!(c.session_ttl, Duration::from_secs(300));
-        assert_eq!(c.max_message_bytes, 4 << 20);
+        assert_eq!(c.requests.max_message_bytes, None);
+        assert_eq!(c.requests.request_timeout, Duration::from_secs(10));
+        assert_eq!(c.requests.bytes_per_connection, 1 << 20);
+        assert_eq!(c.requests.bytes_total, 64 << 20);
         assert_eq!(c.drain_timeout, Duration::from_secs(10));
         assert_eq!(c.log_format, LogFormat::Text);
         assert!(!c.strict);

@@ -15,7 +15,7 @@ pub(super) fn of(metadata: &MetadataMap, received: Instant) -> Option<Instant> {
 }
 
 /// `grpc-timeout` per the gRPC HTTP/2 spec: at most 8 ASCII digits and a unit (H, M, S, m, u, n).
-fn parse(text: &str) -> Option<Duration> {
+pub(super) fn parse(text: &str) -> Option<Duration> {
     let (digits, unit) = text.split_at(text.len().checked_sub(1)?);
     if digits.is_empty() || digits.len() > 8 || !digits.bytes().all(|b| b.is_ascii_digit()) {
         return None;

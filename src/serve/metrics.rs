@@ -17,7 +17,7 @@ use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
 use prometheus_client::registry::Registry;
 use tokio_util::sync::CancellationToken;
 
-use super::transport::{ConnectionStats, Limits, accept_loop};
+use super::transport::{Admitted, ConnectionStats, Limits, accept_loop};
 use axum::extract::Request;
 use hyper::body::Incoming;
 
@@ -200,6 +200,10 @@ async fn scrape(State(scrape): State<Scrape>) -> impl IntoResponse {
 /// Connections the metrics endpoint holds at once: scrapers are few.
 pub(super) const MAX_METRICS_CONNECTIONS: usize = 64;
 
+/// A scraper sends its request head at once: a client slower than this is closed (and at the cap
+/// the oldest one without its headers in is shed sooner, to admit a new one).
+const METRICS_HEADER_DEADLINE: Duration = Duration::from_secs(2);
+
 /// Largest request head (request line and headers) the metrics endpoint reads.
 const MAX_METRICS_REQUEST_BYTES: usize = 16 * 1024;
 
@@ -220,23 +224,36 @@ pub(super) async fn serve(
     let stats = Arc::new(ConnectionStats::default());
     let cap = MAX_METRICS_CONNECTIONS.min(limits.max_connections);
     let lifetime = limits.handshake_timeout;
-    accept_loop(listener, cap, stats, shutdown, |tcp, peer, permit| {
+    let header_deadline = lifetime.min(METRICS_HEADER_DEADLINE);
+    accept_loop(listener, cap, stats, shutdown, |tcp, peer, admitted| {
         let router = router.clone();
         tokio::spawn(async move {
+            let Admitted { permit, probation } = admitted;
             let _permit = permit;
+            let shed = probation.shed_signal();
+            // A request whose headers are in is past its probation: it cannot be shed.
+            let probation = std::sync::Mutex::new(Some(probation));
             let service = hyper::service::service_fn(move |request: Request<Incoming>| {
+                probation.lock().unwrap_or_else(|p| p.into_inner()).take();
                 // axum's router is always ready, and its future owns what it needs.
                 router.clone().call(request.map(axum::body::Body::new))
             });
             let mut builder = hyper::server::conn::http1::Builder::new();
             builder
                 .timer(TokioTimer::new())
-                .header_read_timeout(lifetime)
+                .header_read_timeout(header_deadline)
                 .max_buf_size(MAX_METRICS_REQUEST_BYTES)
                 .keep_alive(false);
             let connection = builder.serve_connection(TokioIo::new(tcp), service);
-            if tokio::time::timeout(lifetime, connection).await.is_err() {
-                tracing::debug!(%peer, "metrics connection closed: not done within the handshake timeout");
+            tokio::select! {
+                done = tokio::time::timeout(lifetime, connection) => {
+                    if done.is_err() {
+                        tracing::debug!(%peer, "metrics connection closed: not done within the handshake timeout");
+                    }
+                }
+                _ = shed.cancelled() => {
+                    tracing::debug!(%peer, "metrics connection shed at the cap: no request headers yet");
+                }
             }
         });
     })

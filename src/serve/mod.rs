@@ -6,6 +6,7 @@ mod batch;
 mod config;
 mod deadline;
 mod health;
+mod intake;
 mod metrics;
 mod registry;
 mod service;
@@ -24,12 +25,16 @@ use tonic_health::ServingStatus;
 
 pub use arrival::Arrival;
 pub use config::{LogFormat, ServeArgs, ServeConfig, socket_address};
+pub use intake::RequestLimits;
 use registry::Registry;
 use service::{PracService, ServerState};
 use session::Sessions;
 pub use session::{Session, SessionSettings};
 
 use crate::proto::{self, prac_server::PracServer};
+
+/// Largest response (and request, by tonic's own check) when `--max-message-bytes` is not set.
+const DEFAULT_MAX_RESPONSE_BYTES: usize = 4 << 20;
 
 /// Sets up tracing on stderr in the chosen format (RUST_LOG overrides the level, default info).
 pub fn init_logging(format: LogFormat) {
@@ -116,6 +121,9 @@ async fn reload_on_hangup(state: Arc<ServerState>, dir: std::path::PathBuf, heal
         );
         state.metrics.reload(report.errors.is_empty());
         let serving = !registry.is_empty();
+        state
+            .intake
+            .bundles_need(registry.largest_request_bytes(state.max_horizon_limit));
         *state.registry.write().unwrap_or_else(|p| p.into_inner()) = Some(Arc::new(registry));
         if !state.shutdown.is_cancelled() {
             health
@@ -159,11 +167,24 @@ pub async fn bind(config: &ServeConfig) -> anyhow::Result<Bound> {
         None => None,
     };
     let mut limits = config.connections;
-    limits.max_connections = transport::connection_cap(limits.max_connections);
+    let (soft, hard) =
+        transport::raise_open_file_limit().context("cannot read the open-file limit")?;
+    limits.max_connections = transport::connection_cap(limits.max_connections, soft);
+    anyhow::ensure!(
+        limits.max_connections >= transport::MIN_WORKABLE_CONNECTIONS
+            || limits.max_connections == config.connections.max_connections,
+        "the open-file limit is {soft} (hard limit {hard}), which leaves {} connections once 64 \
+         descriptors are kept for bundles, logs and listeners; at least {} are needed. Raise \
+         the hard limit: `ulimit -Hn 4096` in the shell that starts prac (as root), \
+         LimitNOFILE=4096 in a systemd unit, or --ulimit nofile=4096 for a container",
+        limits.max_connections,
+        transport::MIN_WORKABLE_CONNECTIONS
+    );
     if limits.max_connections < config.connections.max_connections {
         tracing::warn!(
             max_connections = limits.max_connections,
             asked = config.connections.max_connections,
+            open_file_limit = soft,
             "the open-file limit (ulimit -n) allows fewer connections than asked; raise it to serve more"
         );
     }
@@ -252,8 +273,19 @@ pub async fn serve(
     let prac = PracServer::new(PracService {
         state: state.clone(),
     })
-    .max_decoding_message_size(config.max_message_bytes)
-    .max_encoding_message_size(config.max_message_bytes);
+    // The intake holds requests to what the bundles need before tonic sees them.
+    .max_decoding_message_size(
+        config
+            .requests
+            .max_message_bytes
+            .unwrap_or(DEFAULT_MAX_RESPONSE_BYTES),
+    )
+    .max_encoding_message_size(
+        config
+            .requests
+            .max_message_bytes
+            .unwrap_or(DEFAULT_MAX_RESPONSE_BYTES),
+    );
     let routes = tonic::service::Routes::new(health_service)
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)
@@ -263,6 +295,7 @@ pub async fn serve(
         bound.tls,
         routes,
         bound.limits,
+        state.intake.clone(),
         Arc::new(transport::ConnectionStats::default()),
         cancel.clone(),
     );
@@ -345,15 +378,25 @@ fn server_state(
     auth: Option<auth::Tokens>,
     cancel: CancellationToken,
 ) -> Arc<ServerState> {
+    let auth = auth.map(Arc::new);
+    let metrics = Arc::new(metrics::Metrics::default());
     Arc::new(ServerState {
+        intake: Arc::new(intake::Intake::new(
+            config.requests,
+            auth.clone(),
+            metrics.clone(),
+        )),
         registry: RwLock::new(None),
         sessions: Arc::new(Sessions::new(config.max_sessions, config.session_ttl)),
         max_horizon_limit: config.max_horizon_limit,
-        max_message_bytes: config.max_message_bytes,
+        max_message_bytes: config
+            .requests
+            .max_message_bytes
+            .unwrap_or(DEFAULT_MAX_RESPONSE_BYTES),
         shutdown: cancel,
         batcher: config.batch.map(batch::Batcher::start),
         auth,
-        metrics: Arc::new(metrics::Metrics::default()),
+        metrics,
     })
 }
 
@@ -382,6 +425,11 @@ async fn install_bundles(
         );
     }
     let count = loaded.registry.len();
+    state.intake.bundles_need(
+        loaded
+            .registry
+            .largest_request_bytes(config.max_horizon_limit),
+    );
     *state.registry.write().unwrap_or_else(|p| p.into_inner()) = Some(Arc::new(loaded.registry));
     if count == 0 {
         tracing::warn!(dir = %config.bundles.display(), "no bundles loaded; health stays NOT_SERVING");

@@ -34,6 +34,15 @@ impl Registry {
     pub(super) fn is_empty(&self) -> bool {
         self.policies.is_empty()
     }
+    /// The largest valid request any served policy allows with plans of at most `max_horizon`.
+    pub(super) fn largest_request_bytes(&self, max_horizon: usize) -> usize {
+        self.policies
+            .values()
+            .map(|p| super::intake::largest_request_bytes(max_horizon, p.obs_dim(), p.act_dim()))
+            .max()
+            .unwrap_or(0)
+    }
+
     pub(super) fn names(&self) -> Vec<&str> {
         self.policies.keys().map(String::as_str).collect()
     }

@@ -37,7 +37,9 @@ pub(super) struct ServerState {
     /// Cross-session batching; None replans each step in its request handler.
     pub batcher: Option<Batcher>,
     /// Bearer tokens; None when auth is off.
-    pub auth: Option<super::auth::Tokens>,
+    pub auth: Option<Arc<super::auth::Tokens>>,
+    /// Requests in transit: their sizes, buffered bytes and timeouts.
+    pub intake: Arc<super::intake::Intake>,
     pub metrics: Arc<super::metrics::Metrics>,
 }
 
@@ -117,7 +119,7 @@ impl ServerState {
     }
 
     fn caller(&self, metadata: &tonic::metadata::MetadataMap) -> Result<Option<String>, Status> {
-        super::auth::caller(self.auth.as_ref(), metadata).inspect_err(|s| self.metrics.error(s))
+        super::auth::caller(self.auth.as_deref(), metadata).inspect_err(|s| self.metrics.error(s))
     }
 
     /// Counts a handler's error in the metrics: each RPC's handler goes through it once (steps

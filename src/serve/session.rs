@@ -327,6 +327,10 @@ impl Session {
         });
         self.last_arrival = begun.arrival;
         self.commitment.commit();
+        // The client sees its plan in the action bounds: the plan keeps only actions that come
+        // back from there unchanged, so a plan resumed from what the client holds is this one.
+        self.policy
+            .make_actions_round_trip(self.commitment.plan_mut().actions_mut());
         if begun.fresh && self.step.is_some() {
             self.episode += 1;
         }

@@ -1,18 +1,23 @@
 //! The connections the server accepts, held to limits so that no client, silent or hostile, can
 //! hold the server's sockets, memory or accept loop:
-//! - at most `max_connections` at once; more are closed as soon as they are accepted;
+//! - at most `max_connections` at once; at the cap a new connection is admitted by shedding the
+//!   oldest one that has not yet completed its handshake and first request (as proxies shed
+//!   slowloris clients), and closed at once if every connection has;
 //! - a connection must complete TLS (if on) and send its first request within
 //!   `handshake_timeout`, or it is closed;
 //! - a connection with no call in flight for `idle_timeout` is sent GOAWAY (clients reconnect);
 //! - HTTP/2 keepalive pings close connections whose peer stopped answering;
 //! - at most `max_streams_per_connection` concurrent streams per connection, and a small
 //!   per-stream receive window, so one stream that is not read holds at most that window;
-//! - accept errors (out of file descriptors) back off instead of spinning.
+//! - accept errors (out of file descriptors) back off instead of spinning;
+//! - requests pass through [`super::intake`] (tokens from HEADERS, message sizes, buffered bytes,
+//!   request timeouts) before tonic reads them.
 //!
 //! The gRPC service itself is tonic's; this module is the accept loop and hyper's HTTP/2
 //! settings around it. Deadlines are the handlers' own (see [`super::deadline`]), so a deadline
 //! is answered DEADLINE_EXCEEDED.
 
+use std::collections::BTreeMap;
 use std::future::Future;
 use std::net::SocketAddr;
 use std::pin::Pin;
@@ -32,6 +37,8 @@ use tokio_util::sync::CancellationToken;
 use tonic::body::Body;
 use tonic::codegen::Service;
 use tonic::service::Routes;
+
+use super::intake::{ConnectionIntake, Intake};
 
 /// Limits on the connections of one listener.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -74,26 +81,114 @@ pub(super) struct ConnectionStats {
     pub tls_failures: AtomicU64,
     pub idle_closed: AtomicU64,
     pub accept_errors: AtomicU64,
+    /// Connections closed to admit a newer one at the cap.
+    pub shed: AtomicU64,
 }
 
-/// The most connections the process's file-descriptor limit allows with room to spare for
-/// bundles, logs and the metrics listener; `wanted` if that is lower.
-pub(super) fn connection_cap(wanted: usize) -> usize {
-    const RESERVE: u64 = 64;
-    let mut limit = libc_rlimit_nofile().unwrap_or(u64::MAX);
-    limit = limit.saturating_sub(RESERVE).max(1);
-    wanted.min(usize::try_from(limit).unwrap_or(usize::MAX))
+/// How long the accept loop waits for a shed connection to give back its slot.
+const SHED_WAIT: Duration = Duration::from_millis(200);
+
+/// The connections that have not yet completed their handshake and first request, oldest first:
+/// at the connection cap the oldest is shed to admit a new one, so connections that send nothing
+/// (or too little) cannot lock real clients out.
+#[derive(Default)]
+pub(super) struct Newcomers {
+    waiting: Mutex<BTreeMap<u64, CancellationToken>>,
+    next: AtomicU64,
 }
 
-fn libc_rlimit_nofile() -> Option<u64> {
-    // /proc/self/limits: "Max open files   1024   1048576   files".
-    let text = std::fs::read_to_string("/proc/self/limits").ok()?;
-    let line = text.lines().find(|l| l.starts_with("Max open files"))?;
-    let soft = line.split_whitespace().nth(3)?;
-    if soft == "unlimited" {
-        return None;
+impl Newcomers {
+    fn enter(self: &Arc<Self>) -> Probation {
+        let id = self.next.fetch_add(1, Ordering::Relaxed);
+        let shed = CancellationToken::new();
+        self.lock().insert(id, shed.clone());
+        Probation {
+            id,
+            shed,
+            newcomers: self.clone(),
+        }
     }
-    soft.parse().ok()
+
+    /// Sheds the oldest connection on probation; false if there is none.
+    fn shed_oldest(&self) -> bool {
+        let oldest = self.lock().pop_first();
+        oldest.map(|(_, shed)| shed.cancel()).is_some()
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, BTreeMap<u64, CancellationToken>> {
+        self.waiting.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+/// A connection that may still be shed: `shed` is cancelled when it is. Dropped (the connection
+/// proved itself, or closed), it leaves the newcomers.
+pub(super) struct Probation {
+    id: u64,
+    shed: CancellationToken,
+    newcomers: Arc<Newcomers>,
+}
+
+impl Probation {
+    /// Resolves if the connection is shed (never, once the probation is dropped).
+    pub(super) fn shed_signal(&self) -> CancellationToken {
+        self.shed.clone()
+    }
+}
+
+impl Drop for Probation {
+    fn drop(&mut self) {
+        self.newcomers.lock().remove(&self.id);
+    }
+}
+
+/// What the accept loop hands over with a connection: the slot that counts it and its probation.
+pub(super) struct Admitted {
+    pub permit: OwnedSemaphorePermit,
+    pub probation: Probation,
+}
+
+/// Descriptors kept for bundles, logs, listeners and the metrics endpoint.
+const RESERVED_DESCRIPTORS: u64 = 64;
+
+/// Fewer connections than this serve too few clients to be worth starting.
+pub(super) const MIN_WORKABLE_CONNECTIONS: usize = 16;
+
+/// Raises the soft open-file limit to the hard limit, as most servers do (Go's runtime, nginx's
+/// `worker_rlimit_nofile`, systemd services): the soft limit is often 1024 or lower by default,
+/// which caps a server's connections far below what the machine allows. Returns the limits
+/// (soft, hard) in force after.
+pub(super) fn raise_open_file_limit() -> std::io::Result<(u64, u64)> {
+    let mut limit = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: getrlimit writes one rlimit through a valid pointer.
+    if unsafe { libc::getrlimit(libc::RLIMIT_NOFILE, &mut limit) } != 0 {
+        return Err(std::io::Error::last_os_error());
+    }
+    if limit.rlim_cur < limit.rlim_max {
+        let raised = libc::rlimit {
+            // An unlimited hard limit is refused above the kernel's nr_open: 2^20 is its default.
+            rlim_cur: if limit.rlim_max == libc::RLIM_INFINITY {
+                1 << 20
+            } else {
+                limit.rlim_max
+            },
+            rlim_max: limit.rlim_max,
+        };
+        // SAFETY: setrlimit reads one rlimit through a valid pointer.
+        if unsafe { libc::setrlimit(libc::RLIMIT_NOFILE, &raised) } == 0 {
+            limit.rlim_cur = raised.rlim_cur;
+        }
+    }
+    Ok((limit.rlim_cur, limit.rlim_max))
+}
+
+/// The most connections an open-file limit of `soft` allows with [`RESERVED_DESCRIPTORS`] to
+/// spare; `wanted` if that is lower.
+pub(super) fn connection_cap(wanted: usize, soft: u64) -> usize {
+    let room = soft.saturating_sub(RESERVED_DESCRIPTORS);
+    wanted.min(usize::try_from(room).unwrap_or(usize::MAX))
 }
 
 /// Logs at most once a second, with how many events it stood for.
@@ -126,7 +221,8 @@ impl RateLimitedLog {
 }
 
 /// Accepts connections until `shutdown`, at most `cap` open at once, handing each to `serve`
-/// with the permit that counts it. Accept errors back off from 5 ms to 1 s.
+/// with its slot and probation. At the cap the oldest connection still on probation is shed to
+/// make room; with none, the new one is closed. Accept errors back off from 5 ms to 1 s.
 pub(super) async fn accept_loop<F>(
     listener: TcpListener,
     cap: usize,
@@ -134,11 +230,13 @@ pub(super) async fn accept_loop<F>(
     shutdown: CancellationToken,
     mut serve: F,
 ) where
-    F: FnMut(TcpStream, SocketAddr, OwnedSemaphorePermit),
+    F: FnMut(TcpStream, SocketAddr, Admitted),
 {
     let permits = Arc::new(Semaphore::new(cap));
+    let newcomers = Arc::new(Newcomers::default());
     let mut backoff = Duration::ZERO;
     let mut refusals = RateLimitedLog::new();
+    let mut sheddings = RateLimitedLog::new();
     let mut errors = RateLimitedLog::new();
     loop {
         let accepted = tokio::select! {
@@ -148,16 +246,31 @@ pub(super) async fn accept_loop<F>(
         match accepted {
             Ok((tcp, peer)) => {
                 backoff = Duration::ZERO;
-                let Ok(permit) = permits.clone().try_acquire_owned() else {
+                let permit = match permits.clone().try_acquire_owned() {
+                    Ok(permit) => Some(permit),
+                    Err(_) if newcomers.shed_oldest() => {
+                        stats.shed.fetch_add(1, Ordering::Relaxed);
+                        if let Some(more) = sheddings.due() {
+                            tracing::info!(%peer, cap, shed_since_last_log = more, "at the connection cap: closed the oldest connection that had sent no complete request, to admit a new one");
+                        }
+                        tokio::time::timeout(SHED_WAIT, permits.clone().acquire_owned())
+                            .await
+                            .ok()
+                            .and_then(Result::ok)
+                    }
+                    Err(_) => None,
+                };
+                let Some(permit) = permit else {
                     stats.refused_at_cap.fetch_add(1, Ordering::Relaxed);
                     if let Some(more) = refusals.due() {
-                        tracing::warn!(%peer, cap, refused_since_last_log = more, "connection refused: the server holds its maximum of connections (--max-connections)");
+                        tracing::warn!(%peer, cap, refused_since_last_log = more, "connection refused: the server holds its maximum of connections (--max-connections), all of them past their first request");
                     }
                     drop(tcp);
                     continue;
                 };
                 let _ = tcp.set_nodelay(true);
-                serve(tcp, peer, permit);
+                let probation = newcomers.enter();
+                serve(tcp, peer, Admitted { permit, probation });
             }
             Err(e) => {
                 stats.accept_errors.fetch_add(1, Ordering::Relaxed);
@@ -181,6 +294,7 @@ pub(super) async fn serve_grpc(
     tls: Option<TlsAcceptor>,
     routes: Routes,
     limits: Limits,
+    intake: Arc<Intake>,
     stats: Arc<ConnectionStats>,
     shutdown: CancellationToken,
 ) {
@@ -192,12 +306,16 @@ pub(super) async fn serve_grpc(
         cap,
         stats.clone(),
         shutdown,
-        |tcp, _peer, permit| {
+        |tcp, _peer, admitted| {
+            let Admitted { permit, probation } = admitted;
             let connection = Connection {
                 routes: routes.clone(),
                 limits,
                 stats: stats.clone(),
                 draining: draining.clone(),
+                shed: probation.shed_signal(),
+                intake: intake.clone(),
+                connection_intake: Arc::new(ConnectionIntake::new(Some(probation))),
             };
             let tls = tls.clone();
             tokio::spawn(async move {
@@ -221,6 +339,10 @@ struct Connection {
     limits: Limits,
     stats: Arc<ConnectionStats>,
     draining: watch::Receiver<()>,
+    /// Cancelled if the connection is shed at the cap before its first complete request.
+    shed: CancellationToken,
+    intake: Arc<Intake>,
+    connection_intake: Arc<ConnectionIntake>,
 }
 
 impl Connection {
@@ -229,7 +351,11 @@ impl Connection {
         let Some(tls) = tls else {
             return self.serve(tcp, accepted).await;
         };
-        match tokio::time::timeout(self.limits.handshake_timeout, tls.accept(tcp)).await {
+        let handshake = tokio::select! {
+            handshake = tokio::time::timeout(self.limits.handshake_timeout, tls.accept(tcp)) => handshake,
+            _ = self.shed.cancelled() => return,
+        };
+        match handshake {
             Ok(Ok(stream)) => self.serve(stream, accepted).await,
             Ok(Err(e)) => {
                 self.stats.tls_failures.fetch_add(1, Ordering::Relaxed);
@@ -252,6 +378,8 @@ impl Connection {
         let service = Tracked {
             routes: self.routes.clone(),
             activity: activity.clone(),
+            intake: self.intake.clone(),
+            connection_intake: self.connection_intake.clone(),
         };
         let mut builder = hyper::server::conn::http2::Builder::new(TokioExecutor::new());
         builder
@@ -275,6 +403,8 @@ impl Connection {
                     return;
                 }
                 _ = activity.changed.notified() => continue,
+                // Shed at the cap before its first complete request: closed at once.
+                _ = self.shed.cancelled() => return,
                 changed = self.draining.changed(), if !closing => {
                     // Shutdown (or the server gone): GOAWAY, calls in flight finish.
                     let _ = changed;
@@ -381,11 +511,13 @@ impl Drop for InFlight {
     }
 }
 
-/// tonic's routes, counting calls in flight on their connection.
+/// tonic's routes behind the intake, counting calls in flight on their connection.
 #[derive(Clone)]
 struct Tracked {
     routes: Routes,
     activity: Arc<Activity>,
+    intake: Arc<Intake>,
+    connection_intake: Arc<ConnectionIntake>,
 }
 
 type BoxFuture<T> = Pin<Box<dyn Future<Output = T> + Send>>;
@@ -395,8 +527,13 @@ impl hyper::service::Service<http::Request<Incoming>> for Tracked {
     type Error = std::convert::Infallible;
     type Future = BoxFuture<Result<Self::Response, Self::Error>>;
 
-    fn call(&self, mut request: http::Request<Incoming>) -> Self::Future {
+    fn call(&self, request: http::Request<Incoming>) -> Self::Future {
         // Called in the connection's order of streams, before any handler runs.
+        let mut request = match self.intake.admit(&self.connection_intake, request) {
+            Ok(request) => request,
+            // Refused from its headers: answered now, its body never read.
+            Err(status) => return Box::pin(std::future::ready(Ok(status.into_http()))),
+        };
         request
             .extensions_mut()
             .insert(super::arrival::Arrival::next());

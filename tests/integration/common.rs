@@ -242,3 +242,14 @@ pub fn tls_files(dir: &Path) -> (String, PathBuf, PathBuf) {
     std::fs::write(&key, certified.signing_key.serialize_pem()).unwrap();
     (certified.cert.pem(), cert, key)
 }
+
+/// Resident memory of a process, in KiB.
+pub fn rss_kib(pid: u32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.split_whitespace().next())
+        .and_then(|v| v.parse().ok())
+        .unwrap()
+}

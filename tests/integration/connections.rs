@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 use bytes::Bytes;
 use common::{
     Server, bundle_dir, grpc_frame, grpc_request, h2_connect, h2_unary, open_default_session,
-    tls_files,
+    rss_kib, tls_files,
 };
 use prac::proto;
 
@@ -277,17 +277,6 @@ fn the_metrics_endpoint_sheds_slow_huge_and_numerous_clients() {
     assert!(scrape_status(&addr, "").starts_with("HTTP/1.1 200"));
 }
 
-/// Resident memory of a process, in KiB.
-fn rss_kib(pid: u32) -> u64 {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmRSS:"))
-        .and_then(|v| v.split_whitespace().next())
-        .and_then(|v| v.parse().ok())
-        .unwrap()
-}
-
 /// Not a test: the figures of docs/operations.md ("Limits"). Run with
 /// `cargo test --release --test integration connections:: -- --ignored --nocapture`.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -405,4 +394,166 @@ async fn measure_connection_stream_and_tls_costs() {
         "TLS handshakes: {:.0}/s (2 clients on the same 2 cores, full handshakes)",
         total as f64 / 3.0
     );
+}
+
+/// Keeps `count` silent connections open to `addr`, replacing the oldest with a new one every
+/// 10 ms (100 a second), until `stop`.
+fn flood_silent(
+    addr: String,
+    count: usize,
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+) -> std::thread::JoinHandle<usize> {
+    std::thread::spawn(move || {
+        let mut open = std::collections::VecDeque::new();
+        let mut made = 0;
+        while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+            if let Ok(stream) = TcpStream::connect(&addr) {
+                open.push_back(stream);
+                made += 1;
+            }
+            while open.len() > count {
+                open.pop_front();
+            }
+            if open.len() >= count {
+                std::thread::sleep(Duration::from_millis(10));
+            }
+        }
+        made
+    })
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_flood_of_silent_connections_does_not_lock_out_real_clients() {
+    let bundles = bundle_dir();
+    let server = Server::start(bundles.path(), &["--max-connections", "64"]);
+    server.wait_serving().await;
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    // Twice the cap, refreshed continuously: without shedding, the cap stays full for the 10 s
+    // handshake timeout and a new client is closed on accept.
+    let flood = flood_silent(server.addr.clone(), 128, stop.clone());
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    for round in 0..10 {
+        let served = tokio::time::timeout(Duration::from_secs(1), async {
+            assert_eq!(
+                server.health("").await,
+                tonic_health::pb::health_check_response::ServingStatus::Serving
+            );
+            let mut client = server.client().await;
+            open_default_session(&mut client, "toy").await;
+        })
+        .await;
+        assert!(served.is_ok(), "round {round}: not served within 1 s");
+        tokio::time::sleep(Duration::from_millis(300)).await;
+    }
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    let made = flood.join().unwrap();
+    assert!(made > 300, "the flood made only {made} connections");
+}
+
+/// `prac serve` under a shell's open-file limit (`ulimit ARGS` first).
+fn serve_under_ulimit(ulimit: &str, bundles: &std::path::Path) -> std::process::Child {
+    std::process::Command::new("sh")
+        .arg("-c")
+        .arg(format!(
+            "ulimit {ulimit} && exec {} serve --listen 127.0.0.1:0 --bundles {}",
+            env!("CARGO_BIN_EXE_prac"),
+            bundles.display()
+        ))
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+#[test]
+fn a_low_open_file_limit_is_raised_or_refused() {
+    let bundles = bundle_dir();
+    // Soft and hard limit 64: nothing to raise, and no connection fits. The server says so.
+    let out = serve_under_ulimit("-n 64", bundles.path())
+        .wait_with_output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "the server started: {stderr}");
+    assert!(
+        stderr.contains("open-file limit is 64") && stderr.contains("ulimit -Hn"),
+        "{stderr}"
+    );
+    assert!(!String::from_utf8_lossy(&out.stdout).contains("listening on"));
+
+    // Soft limit 64 under a higher hard limit: raised to the hard limit, and serving.
+    let hard: u64 = std::fs::read_to_string("/proc/self/limits")
+        .unwrap()
+        .lines()
+        .find(|l| l.starts_with("Max open files"))
+        .and_then(|l| l.split_whitespace().nth(4)?.parse().ok())
+        .unwrap();
+    assert!(
+        hard > 1024,
+        "this test needs a hard open-file limit above 1024"
+    );
+    let mut child = serve_under_ulimit("-Sn 64", bundles.path());
+    let mut stdout = std::io::BufReader::new(child.stdout.take().unwrap());
+    let mut line = String::new();
+    std::io::BufRead::read_line(&mut stdout, &mut line).unwrap();
+    let limits = std::fs::read_to_string(format!("/proc/{}/limits", child.id())).unwrap();
+    let _ = child.kill();
+    let _ = child.wait();
+    assert!(line.starts_with("listening on"), "{line}");
+    let soft = limits
+        .lines()
+        .find(|l| l.starts_with("Max open files"))
+        .and_then(|l| l.split_whitespace().nth(3))
+        .unwrap()
+        .to_string();
+    assert_eq!(soft, hard.min(1 << 20).to_string(), "{limits}");
+}
+
+#[test]
+fn slow_clients_cannot_starve_the_metrics_endpoint() {
+    let bundles = bundle_dir();
+    let server = Server::start(bundles.path(), &["--metrics-listen", "127.0.0.1:0"]);
+    let addr = metrics_addr(&server);
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    // 1,000 clients each sending one byte of a request every 100 ms, reconnecting when closed.
+    let slow: Vec<_> = (0..4)
+        .map(|_| {
+            let (addr, stop) = (addr.clone(), stop.clone());
+            std::thread::spawn(move || {
+                let request = b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n";
+                let mut clients: Vec<(Option<TcpStream>, usize)> =
+                    (0..250).map(|_| (None, 0)).collect();
+                while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                    for (stream, sent) in &mut clients {
+                        if stream.is_none() {
+                            *stream = TcpStream::connect(&addr).ok();
+                            *sent = 0;
+                        }
+                        let Some(s) = stream else { continue };
+                        // Never the last byte: the request stays incomplete.
+                        let byte = &request[*sent % (request.len() - 1)..][..1];
+                        if s.write_all(byte).is_err() {
+                            *stream = None;
+                        }
+                        *sent += 1;
+                    }
+                    std::thread::sleep(Duration::from_millis(100));
+                }
+            })
+        })
+        .collect();
+    std::thread::sleep(Duration::from_millis(500));
+    for scrape in 0..8 {
+        let started = Instant::now();
+        let status = scrape_status(&addr, "");
+        assert!(
+            status.starts_with("HTTP/1.1 200") && started.elapsed() < Duration::from_secs(1),
+            "scrape {scrape}: {status:?} after {:?}",
+            started.elapsed()
+        );
+        std::thread::sleep(Duration::from_secs(1));
+    }
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    for thread in slow {
+        thread.join().unwrap();
+    }
 }

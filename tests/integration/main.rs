@@ -13,6 +13,7 @@ mod metrics;
 mod reload;
 mod render;
 mod replicas;
+mod requests;
 mod resume;
 mod server;
 mod train;

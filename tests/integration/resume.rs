@@ -196,3 +196,128 @@ async fn malformed_resumed_plans_are_refused_with_their_reason() {
         .into_inner();
     assert_eq!(opened.resumed_actions, 3);
 }
+
+/// Steps `session` through `observations` (the first starts an episode); every response.
+async fn step_all(
+    client: &mut prac::proto::prac_client::PracClient<tonic::transport::Channel>,
+    session: &str,
+    observations: &[Vec<f32>],
+    first_is_new_episode: bool,
+) -> Vec<proto::StepResponse> {
+    let mut responses = Vec::new();
+    for (t, obs) in observations.iter().enumerate() {
+        let response = client
+            .step(proto::StepRequest {
+                session_id: session.to_string(),
+                observation: obs.clone(),
+                new_episode: first_is_new_episode && t == 0,
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        responses.push(response);
+    }
+    responses
+}
+
+/// Bit for bit: a response's every float as its bits, each list led by its length.
+fn bits(response: &proto::StepResponse) -> Vec<u64> {
+    let mut out = Vec::new();
+    let mut floats = |v: &[f32]| {
+        out.push(v.len() as u64);
+        out.extend(v.iter().map(|x| u64::from(x.to_bits())));
+    };
+    floats(&response.action);
+    for entry in &response.forecast {
+        floats(&entry.action);
+        floats(&entry.predicted_observation);
+    }
+    out.extend(response.forecast.iter().map(|e| e.decided_at));
+    out
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_resumed_session_answers_bit_for_bit_as_the_uninterrupted_one() {
+    let bundles = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("bundles");
+    let server = Server::start(&bundles, &[]);
+    server.wait_serving().await;
+    let mut client = server.client().await;
+    let policies = client
+        .list_policies(proto::ListPoliciesRequest {})
+        .await
+        .unwrap()
+        .into_inner()
+        .policies;
+    assert!(policies.len() >= 7, "{policies:?}");
+    for policy in &policies {
+        let mut env = prac::domains::make(&policy.domain).unwrap();
+        let mut start = vec![0.0; policy.obs_dim as usize];
+        env.reset(11, &mut start).unwrap();
+        let open = proto::OpenSessionRequest {
+            policy: policy.name.clone(),
+            options: Some(proto::SessionOptions {
+                tolerance: Some(Tolerance::EpsilonCoef(0.01)),
+                ..Default::default()
+            }),
+            resume: None,
+        };
+        // The uninterrupted session, observing each time the model's own prediction.
+        let id = client
+            .open_session(open.clone())
+            .await
+            .unwrap()
+            .into_inner()
+            .session_id;
+        let mut observations = vec![start];
+        let mut uninterrupted = Vec::new();
+        for t in 0..9 {
+            let response = step_all(&mut client, &id, &observations[t..=t], t == 0).await;
+            let next = response[0].forecast[1.min(response[0].forecast.len() - 1)]
+                .predicted_observation
+                .clone();
+            let next = if next.is_empty() {
+                observations[t].clone()
+            } else {
+                next
+            };
+            observations.push(next);
+            uninterrupted.extend(response);
+        }
+        for resume_after in [1, 3, 6, 8] {
+            let held = held_plan(&uninterrupted[resume_after - 1]);
+            let opened = client
+                .open_session(proto::OpenSessionRequest {
+                    resume: Some(held),
+                    ..open.clone()
+                })
+                .await
+                .unwrap()
+                .into_inner();
+            let resumed = step_all(
+                &mut client,
+                &opened.session_id,
+                &observations[resume_after..9],
+                false,
+            )
+            .await;
+            for (k, (r, u)) in resumed
+                .iter()
+                .zip(&uninterrupted[resume_after..])
+                .enumerate()
+            {
+                let t = resume_after + k;
+                assert_eq!(
+                    (r.kept, r.broke_at, r.f_t, r.step, r.episode),
+                    (u.kept, u.broke_at, u.f_t, u.step, u.episode),
+                    "{} resumed after step {resume_after}, step {t}",
+                    policy.name
+                );
+                assert!(
+                    bits(r) == bits(u),
+                    "{} resumed after step {resume_after}, step {t}: {r:?} vs {u:?}",
+                    policy.name
+                );
+            }
+        }
+    }
+}

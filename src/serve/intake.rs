@@ -1,0 +1,441 @@
+//! Requests as they come in, before tonic reads them. tonic reads a unary request whole before its
+//! handler runs, and reserves a message's declared length as soon as its 5-byte prefix arrives,
+//! so without this layer a client that declares large messages and never finishes them makes the
+//! server hold them (and re-open the HTTP/2 windows) for as long as the connection lives. Here:
+//! - the bearer token of a prac.v1 call is checked from its HEADERS; a call without a valid one is
+//!   answered UNAUTHENTICATED before any of its body is read;
+//! - a message may declare at most the size the loaded bundles can need (the largest valid
+//!   request is an OpenSession resuming a plan of `--max-horizon-limit` actions), or
+//!   `--max-message-bytes` when set; health and reflection requests at most [`SMALL_MESSAGE`];
+//!   a larger one is answered OUT_OF_RANGE, as tonic answers a message over its limit;
+//! - the declared bytes of unfinished messages are held to a budget per connection and one for
+//!   the whole server (Envoy's per-connection buffer limit and overload manager do the same): a
+//!   call that would pass either is answered RESOURCE_EXHAUSTED, and so is a new call while either
+//!   is spent, so the windows of what is refused are never re-opened;
+//! - a unary request must arrive whole, and each message of a streamed request must complete once
+//!   begun, within `--request-timeout` or the call's own deadline, whichever is shorter; past it
+//!   the call is answered DEADLINE_EXCEEDED and what it held is let go (nginx's
+//!   `client_body_timeout`, Envoy's `request_timeout`).
+
+use std::future::Future as _;
+use std::pin::Pin;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::task::{Context, Poll};
+use std::time::{Duration, Instant};
+
+use bytes::Bytes;
+use http_body::{Body as HttpBody, Frame, SizeHint};
+use hyper::body::Incoming;
+use tonic::Status;
+
+use super::auth::Tokens;
+use super::metrics::Metrics;
+use super::transport::Probation;
+
+/// The largest health or reflection request: a service or symbol name.
+pub(super) const SMALL_MESSAGE: usize = 4 * 1024;
+
+/// The smallest limit derived from the bundles: room for ids, names and options.
+const MIN_DERIVED_MESSAGE: usize = 16 * 1024;
+
+/// The path prefix of the calls that carry a token.
+const PRAC_PATH: &str = "/prac.v1.Prac/";
+
+/// Calls whose requests are streams: only each message, not the whole body, must complete in time.
+const STREAMED_REQUESTS: [&str; 3] = [
+    "/prac.v1.Prac/StepStream",
+    "/grpc.reflection.v1.ServerReflection/ServerReflectionInfo",
+    "/grpc.reflection.v1alpha.ServerReflection/ServerReflectionInfo",
+];
+
+/// The limits on requests in transit.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RequestLimits {
+    /// A request (unary) or a message of it (streamed) must complete this soon.
+    pub request_timeout: Duration,
+    /// Declared bytes of unfinished messages one connection may hold.
+    pub bytes_per_connection: usize,
+    /// The same over all connections.
+    pub bytes_total: usize,
+    /// `--max-message-bytes`; None follows the loaded bundles.
+    pub max_message_bytes: Option<usize>,
+}
+
+/// The largest encoded prac.v1 request a policy of these dimensions allows: an OpenSession
+/// resuming a plan of `max_horizon` actions, each with its predicted observation, as the client's
+/// last StepResponse carries them; packed floats plus every tag, length and varint, generously.
+pub(super) fn largest_request_bytes(max_horizon: usize, obs_dim: usize, act_dim: usize) -> usize {
+    let entry = 4 * (obs_dim + act_dim) + 32;
+    let ids_names_and_options = 1024;
+    ((max_horizon + 1) * entry + ids_names_and_options).max(MIN_DERIVED_MESSAGE)
+}
+
+/// What every connection of the gRPC listener shares.
+pub(super) struct Intake {
+    limits: RequestLimits,
+    tokens: Option<Arc<Tokens>>,
+    /// Largest prac.v1 request message now.
+    max_message: AtomicUsize,
+    held: AtomicUsize,
+    metrics: Arc<Metrics>,
+    pub(super) refused: AtomicU64,
+}
+
+impl Intake {
+    pub(super) fn new(
+        limits: RequestLimits,
+        tokens: Option<Arc<Tokens>>,
+        metrics: Arc<Metrics>,
+    ) -> Intake {
+        Intake {
+            limits,
+            tokens,
+            max_message: AtomicUsize::new(limits.max_message_bytes.unwrap_or(MIN_DERIVED_MESSAGE)),
+            held: AtomicUsize::new(0),
+            metrics,
+            refused: AtomicU64::new(0),
+        }
+    }
+
+    /// The loaded bundles' largest valid request: the message limit unless one is set.
+    pub(super) fn bundles_need(&self, bytes: usize) {
+        let limit = self.limits.max_message_bytes.unwrap_or(bytes);
+        if self.max_message.swap(limit, Ordering::Relaxed) != limit {
+            tracing::info!(max_message_bytes = limit, "request message limit");
+        }
+    }
+
+    pub(super) fn max_message(&self) -> usize {
+        self.max_message.load(Ordering::Relaxed)
+    }
+
+    /// Bytes held now over all connections.
+    pub(super) fn held(&self) -> usize {
+        self.held.load(Ordering::Relaxed)
+    }
+
+    fn refuse(&self, status: Status) -> Status {
+        self.refused.fetch_add(1, Ordering::Relaxed);
+        self.metrics.error(&status);
+        status
+    }
+
+    /// Admits a call from its headers, or says why not; the admitted call's body comes through
+    /// the returned [`IntakeBody`].
+    pub(super) fn admit(
+        self: &Arc<Self>,
+        connection: &Arc<ConnectionIntake>,
+        request: http::Request<Incoming>,
+    ) -> Result<http::Request<IntakeBody>, Status> {
+        let path = request.uri().path();
+        let prac = path.starts_with(PRAC_PATH);
+        if prac && let Some(tokens) = &self.tokens {
+            let metadata = tonic::metadata::MetadataMap::from_headers(request.headers().clone());
+            tokens.caller(&metadata).map_err(|s| self.refuse(s))?;
+        }
+        if connection.held.load(Ordering::Relaxed) >= self.limits.bytes_per_connection {
+            return Err(self.refuse(Status::resource_exhausted(format!(
+                "this connection holds its maximum of {} bytes of unfinished requests; finish \
+                 them or retry",
+                self.limits.bytes_per_connection
+            ))));
+        }
+        if self.held() >= self.limits.bytes_total {
+            return Err(self.refuse(server_full(self.limits.bytes_total)));
+        }
+        let streamed = STREAMED_REQUESTS.contains(&path);
+        let now = Instant::now();
+        let call_deadline = request
+            .headers()
+            .get("grpc-timeout")
+            .and_then(|v| super::deadline::parse(v.to_str().ok()?))
+            .map(|timeout| now + timeout);
+        let max_message = if prac {
+            self.max_message()
+        } else {
+            SMALL_MESSAGE
+        };
+        let mut body = IntakeBody {
+            inner: None,
+            intake: self.clone(),
+            connection: connection.clone(),
+            max_message,
+            streamed,
+            call_deadline,
+            due: None,
+            timer: None,
+            framing: Framing::default(),
+            holding: None,
+            failed: false,
+        };
+        if !streamed {
+            body.due = Some(body.bound(now));
+        }
+        let (parts, incoming) = request.into_parts();
+        body.inner = Some(incoming);
+        Ok(http::Request::from_parts(parts, body))
+    }
+}
+
+fn server_full(total: usize) -> Status {
+    Status::resource_exhausted(format!(
+        "the server holds its maximum of {total} bytes of unfinished requests; retry shortly"
+    ))
+}
+
+/// One connection's share of the intake.
+pub(super) struct ConnectionIntake {
+    held: AtomicUsize,
+    /// Until its first request message is complete, the connection may be shed to admit another.
+    probation: Mutex<Option<Probation>>,
+}
+
+impl ConnectionIntake {
+    pub(super) fn new(probation: Option<Probation>) -> ConnectionIntake {
+        ConnectionIntake {
+            held: AtomicUsize::new(0),
+            probation: Mutex::new(probation),
+        }
+    }
+
+    fn passed(&self) {
+        self.probation
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .take();
+    }
+}
+
+/// Declared bytes of one unfinished message, given back when dropped.
+struct Holding {
+    intake: Arc<Intake>,
+    connection: Arc<ConnectionIntake>,
+    bytes: usize,
+}
+
+impl Holding {
+    fn take(
+        intake: &Arc<Intake>,
+        connection: &Arc<ConnectionIntake>,
+        bytes: usize,
+    ) -> Result<Holding, Status> {
+        let on_connection = connection.held.fetch_add(bytes, Ordering::Relaxed) + bytes;
+        let in_all = intake.held.fetch_add(bytes, Ordering::Relaxed) + bytes;
+        let holding = Holding {
+            intake: intake.clone(),
+            connection: connection.clone(),
+            bytes,
+        };
+        if on_connection > intake.limits.bytes_per_connection {
+            return Err(Status::resource_exhausted(format!(
+                "a message of {bytes} bytes would take this connection past its {} bytes of \
+                 unfinished requests; finish the others first",
+                intake.limits.bytes_per_connection
+            )));
+        }
+        if in_all > intake.limits.bytes_total {
+            return Err(server_full(intake.limits.bytes_total));
+        }
+        Ok(holding)
+    }
+}
+
+impl Drop for Holding {
+    fn drop(&mut self) {
+        self.connection
+            .held
+            .fetch_sub(self.bytes, Ordering::Relaxed);
+        self.intake.held.fetch_sub(self.bytes, Ordering::Relaxed);
+    }
+}
+
+/// Where the gRPC framing of a request stands: the 5-byte prefix read so far, or what is left of
+/// the message it declared.
+#[derive(Default)]
+struct Framing {
+    prefix: [u8; 5],
+    prefix_read: usize,
+    body_left: usize,
+}
+
+impl Framing {
+    fn in_message(&self) -> bool {
+        self.prefix_read > 0 || self.body_left > 0
+    }
+}
+
+/// A request body read through the intake's limits.
+pub(super) struct IntakeBody {
+    /// Always Some once admitted (kept optional only while it is built).
+    inner: Option<Incoming>,
+    intake: Arc<Intake>,
+    connection: Arc<ConnectionIntake>,
+    max_message: usize,
+    streamed: bool,
+    call_deadline: Option<Instant>,
+    /// When the request (unary) or the message in progress (streamed) must be complete.
+    due: Option<Instant>,
+    timer: Option<Pin<Box<tokio::time::Sleep>>>,
+    framing: Framing,
+    holding: Option<Holding>,
+    failed: bool,
+}
+
+impl IntakeBody {
+    /// The request timeout from `start`, or the call's deadline if sooner.
+    fn bound(&self, start: Instant) -> Instant {
+        let own = start + self.intake.limits.request_timeout;
+        self.call_deadline.map_or(own, |d| d.min(own))
+    }
+
+    fn fail(&mut self, status: Status) -> Status {
+        self.failed = true;
+        self.holding = None;
+        self.due = None;
+        self.timer = None;
+        self.intake.refuse(status)
+    }
+
+    /// Follows the framing through one DATA frame.
+    fn take_in(&mut self, data: &Bytes) -> Result<(), Status> {
+        let mut rest: &[u8] = data;
+        while !rest.is_empty() {
+            if self.framing.body_left == 0 {
+                if self.framing.prefix_read == 0 && self.streamed {
+                    self.due = Some(self.bound(Instant::now()));
+                }
+                let n = (5 - self.framing.prefix_read).min(rest.len());
+                let at = self.framing.prefix_read;
+                self.framing.prefix[at..at + n].copy_from_slice(&rest[..n]);
+                self.framing.prefix_read += n;
+                rest = &rest[n..];
+                if self.framing.prefix_read < 5 {
+                    continue;
+                }
+                self.framing.prefix_read = 0;
+                let p = self.framing.prefix;
+                let declared = u32::from_be_bytes([p[1], p[2], p[3], p[4]]) as usize;
+                if declared > self.max_message {
+                    // OUT_OF_RANGE, as tonic answers a message over its own limit.
+                    return Err(Status::out_of_range(format!(
+                        "a request message of {declared} bytes is too large: this server's limit \
+                         is {} bytes (the largest request its policies allow; \
+                         --max-message-bytes)",
+                        self.max_message
+                    )));
+                }
+                self.holding = Some(Holding::take(&self.intake, &self.connection, declared + 5)?);
+                self.framing.body_left = declared;
+            } else {
+                let n = self.framing.body_left.min(rest.len());
+                self.framing.body_left -= n;
+                rest = &rest[n..];
+            }
+            if !self.framing.in_message() {
+                self.message_complete();
+            }
+        }
+        Ok(())
+    }
+
+    fn message_complete(&mut self) {
+        // tonic decodes a complete message at once: what it held is given back.
+        self.holding = None;
+        self.due = None;
+        self.timer = None;
+        self.connection.passed();
+    }
+}
+
+impl HttpBody for IntakeBody {
+    type Data = Bytes;
+    type Error = Box<dyn std::error::Error + Send + Sync>;
+
+    fn poll_frame(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+    ) -> Poll<Option<Result<Frame<Bytes>, Self::Error>>> {
+        let this = &mut *self;
+        if this.failed {
+            return Poll::Ready(None);
+        }
+        let Some(inner) = this.inner.as_mut() else {
+            return Poll::Ready(None);
+        };
+        match Pin::new(inner).poll_frame(cx) {
+            Poll::Ready(Some(Ok(frame))) => {
+                if let Some(data) = frame.data_ref()
+                    && let Err(status) = this.take_in(data)
+                {
+                    return Poll::Ready(Some(Err(this.fail(status).into())));
+                }
+                return Poll::Ready(Some(Ok(frame)));
+            }
+            Poll::Ready(Some(Err(e))) => {
+                this.holding = None;
+                return Poll::Ready(Some(Err(e.into())));
+            }
+            Poll::Ready(None) => {
+                this.holding = None;
+                this.due = None;
+                return Poll::Ready(None);
+            }
+            Poll::Pending => {}
+        }
+        let Some(due) = this.due else {
+            return Poll::Pending;
+        };
+        let due = tokio::time::Instant::from_std(due);
+        let timer = this
+            .timer
+            .get_or_insert_with(|| Box::pin(tokio::time::sleep_until(due)));
+        if timer.deadline() != due {
+            timer.as_mut().reset(due);
+        }
+        match timer.as_mut().poll(cx) {
+            Poll::Ready(()) => {
+                let what = if this.streamed {
+                    "a request message was not complete"
+                } else {
+                    "the request was not complete"
+                };
+                let status = Status::deadline_exceeded(format!(
+                    "{what} within the request timeout (--request-timeout {:?}) or the call's \
+                     deadline",
+                    this.intake.limits.request_timeout
+                ));
+                Poll::Ready(Some(Err(this.fail(status).into())))
+            }
+            Poll::Pending => Poll::Pending,
+        }
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.failed || self.inner.as_ref().is_none_or(|b| b.is_end_stream())
+    }
+
+    fn size_hint(&self) -> SizeHint {
+        self.inner
+            .as_ref()
+            .map_or_else(SizeHint::default, |b| b.size_hint())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_largest_request_grows_with_the_plan_and_the_dimensions() {
+        let hopper = largest_request_bytes(256, 15, 3);
+        let humanoid = largest_request_bytes(256, 44, 17);
+        assert!(humanoid > hopper && hopper >= MIN_DERIVED_MESSAGE);
+        // 257 entries of 61 floats: over 62 KB, well under the 4 MiB it replaces.
+        assert!(
+            humanoid > 257 * 61 * 4 && humanoid < 128 * 1024,
+            "{humanoid}"
+        );
+        assert_eq!(largest_request_bytes(1, 1, 1), MIN_DERIVED_MESSAGE);
+    }
+}
