@@ -7,6 +7,7 @@ mod config;
 mod deadline;
 mod health;
 mod intake;
+mod memory;
 mod metrics;
 mod registry;
 mod service;
@@ -290,13 +291,18 @@ pub async fn serve(
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)
         .add_service(prac);
+    let connection_stats = Arc::new(transport::ConnectionStats::default());
+    tokio::spawn(memory::give_back_after_bursts(
+        connection_stats.clone(),
+        cancel.clone(),
+    ));
     let server = transport::serve_grpc(
         bound.grpc,
         bound.tls,
         routes,
         bound.limits,
         state.intake.clone(),
-        Arc::new(transport::ConnectionStats::default()),
+        connection_stats,
         cancel.clone(),
     );
     let mut server = tokio::spawn(server);

@@ -83,6 +83,9 @@ pub(super) struct ConnectionStats {
     pub accept_errors: AtomicU64,
     /// Connections closed to admit a newer one at the cap.
     pub shed: AtomicU64,
+    /// Calls in flight over all connections, and the most since the memory keeper last looked.
+    pub calls_in_flight: AtomicU64,
+    pub calls_in_flight_peak: AtomicU64,
 }
 
 /// How long the accept loop waits for a shed connection to give back its slot.
@@ -374,7 +377,7 @@ impl Connection {
     where
         I: AsyncRead + AsyncWrite + Unpin + Send + 'static,
     {
-        let activity = Arc::new(Activity::new(accepted));
+        let activity = Arc::new(Activity::new(accepted, self.stats.clone()));
         let service = Tracked {
             routes: self.routes.clone(),
             activity: activity.clone(),
@@ -441,15 +444,17 @@ struct Activity {
     since: Mutex<Instant>,
     /// Wakes the connection's loop to re-arm its timer when a call starts or ends.
     changed: tokio::sync::Notify,
+    stats: Arc<ConnectionStats>,
 }
 
 impl Activity {
-    fn new(accepted: Instant) -> Activity {
+    fn new(accepted: Instant, stats: Arc<ConnectionStats>) -> Activity {
         Activity {
             in_flight: AtomicU64::new(0),
             any_request: AtomicBool::new(false),
             since: Mutex::new(accepted),
             changed: tokio::sync::Notify::new(),
+            stats,
         }
     }
 
@@ -465,6 +470,10 @@ impl Activity {
     fn started(self: &Arc<Self>) -> InFlight {
         self.any_request.store(true, Ordering::SeqCst);
         self.in_flight.fetch_add(1, Ordering::SeqCst);
+        let calls = self.stats.calls_in_flight.fetch_add(1, Ordering::Relaxed) + 1;
+        self.stats
+            .calls_in_flight_peak
+            .fetch_max(calls, Ordering::Relaxed);
         self.touch();
         InFlight(self.clone())
     }
@@ -508,6 +517,7 @@ impl Drop for InFlight {
     fn drop(&mut self) {
         self.0.touch();
         self.0.in_flight.fetch_sub(1, Ordering::SeqCst);
+        self.0.stats.calls_in_flight.fetch_sub(1, Ordering::Relaxed);
     }
 }
 

@@ -469,9 +469,13 @@ fn serve_under_ulimit(ulimit: &str, bundles: &std::path::Path) -> std::process::
 fn a_low_open_file_limit_is_raised_or_refused() {
     let bundles = bundle_dir();
     // Soft and hard limit 64: nothing to raise, and no connection fits. The server says so.
-    let out = serve_under_ulimit("-n 64", bundles.path())
-        .wait_with_output()
-        .unwrap();
+    let mut child = serve_under_ulimit("-n 64", bundles.path());
+    let start = Instant::now();
+    while child.try_wait().unwrap().is_none() && start.elapsed() < Duration::from_secs(10) {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let _ = child.kill();
+    let out = child.wait_with_output().unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "the server started: {stderr}");
     assert!(
@@ -556,4 +560,73 @@ fn slow_clients_cannot_starve_the_metrics_endpoint() {
     for thread in slow {
         thread.join().unwrap();
     }
+}
+
+/// One round of streams that are never read: `connections` connections with `per_connection`
+/// StepStreams each (one per session of `sessions`), `steps` steps sent on each, then every
+/// connection dropped, which cancels its streams.
+async fn unread_stream_round(addr: &str, sessions: &[String], connections: usize, steps: usize) {
+    let per_connection = sessions.len() / connections;
+    let mut streams = Vec::new();
+    let mut tasks = Vec::new();
+    let mut senders = Vec::new();
+    for c in 0..connections {
+        // A client window large enough that h2's guard against small DATA frames never closes
+        // the connection while the answers go unread.
+        let tcp = tokio::net::TcpStream::connect(addr).await.unwrap();
+        let (send, connection) = h2::client::Builder::new()
+            .initial_window_size(1 << 20)
+            .initial_connection_window_size(1 << 30)
+            .handshake(tcp)
+            .await
+            .unwrap();
+        tasks.push(tokio::spawn(connection));
+        senders.push(send.clone());
+        for session in &sessions[c * per_connection..(c + 1) * per_connection] {
+            let request = grpc_request(addr, "/prac.v1.Prac/StepStream");
+            let mut ready = send.clone().ready().await.unwrap();
+            let (response, mut body) = ready.send_request(request, false).unwrap();
+            for t in 0..steps {
+                let step = proto::StepRequest {
+                    session_id: session.clone(),
+                    observation: vec![0.01 * t as f32; common::OBS],
+                    new_episode: false,
+                };
+                let _ = body.send_data(grpc_frame(&step), false);
+            }
+            streams.push((response, body));
+        }
+    }
+    // The server takes in what the windows allow and answers until the streams stall.
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    drop(streams);
+    drop(senders);
+    for task in tasks {
+        task.abort();
+    }
+    tokio::time::sleep(Duration::from_millis(1000)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn memory_comes_back_after_cancelled_streams() {
+    let bundles = bundle_dir();
+    let server = Server::start(bundles.path(), &["--max-sessions", "4096"]);
+    server.wait_serving().await;
+    let mut client = server.client().await;
+    let mut sessions = Vec::new();
+    for _ in 0..2000 {
+        sessions.push(open_default_session(&mut client, "toy").await);
+    }
+    let pid = server.child.id();
+    let mut after = Vec::new();
+    for _ in 0..10 {
+        unread_stream_round(&server.addr, &sessions, 20, 12).await;
+        after.push(rss_kib(pid));
+    }
+    eprintln!("server RSS after each round (KiB): {after:?}");
+    let growth = after[9].saturating_sub(after[0]);
+    assert!(
+        growth < 4 * 1024,
+        "ten rounds grew the server by {growth} KiB past the first: {after:?}"
+    );
 }
