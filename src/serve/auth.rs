@@ -46,7 +46,12 @@ impl Tokens {
 
     /// The caller's identity: a hex digest prefix of its token.
     pub(super) fn caller(&self, metadata: &MetadataMap) -> Result<String, Status> {
-        let value = metadata.get("authorization").ok_or_else(|| {
+        self.caller_of(metadata.as_ref())
+    }
+
+    /// The same from a request's HTTP/2 headers.
+    pub(super) fn caller_of(&self, headers: &http::HeaderMap) -> Result<String, Status> {
+        let value = headers.get("authorization").ok_or_else(|| {
             Status::unauthenticated("missing 'authorization: Bearer TOKEN' metadata")
         })?;
         let token = value

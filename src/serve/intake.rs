@@ -131,8 +131,9 @@ impl Intake {
         let path = request.uri().path();
         let prac = path.starts_with(PRAC_PATH);
         if prac && let Some(tokens) = &self.tokens {
-            let metadata = tonic::metadata::MetadataMap::from_headers(request.headers().clone());
-            tokens.caller(&metadata).map_err(|s| self.refuse(s))?;
+            tokens
+                .caller_of(request.headers())
+                .map_err(|s| self.refuse(s))?;
         }
         if connection.held.load(Ordering::Relaxed) >= self.limits.bytes_per_connection {
             return Err(self.refuse(Status::resource_exhausted(format!(
