@@ -125,6 +125,10 @@ settings! {
     metrics_listen: SocketAddr = "none", socket_address,
         "Serve Prometheus metrics over HTTP at ADDR/metrics, e.g. 127.0.0.1:9090; port 0 \
         picks a free port (printed as `metrics on ADDR`); none serves no metrics.";
+    health_listen: SocketAddr = "none", socket_address,
+        "A second, plaintext port at ADDR that answers only grpc.health.v1 (no token, no \
+        other service), for probes that speak neither TLS nor tokens, such as the \
+        kubelet's; e.g. 0.0.0.0:8081 (printed as `health on ADDR`); none serves none.";
     max_connections: usize = "1024", number::<usize>,
         "Most client connections open at once; more are closed when accepted (lowered to \
         fit the open-file limit).";
@@ -204,6 +208,8 @@ pub struct ServeConfig {
     pub tls: Option<(PathBuf, PathBuf)>,
     /// Where to serve Prometheus metrics; None when off.
     pub metrics_listen: Option<SocketAddr>,
+    /// Where to serve plaintext grpc.health.v1 alone; None when off.
+    pub health_listen: Option<SocketAddr>,
     /// Limits on client connections (the metrics endpoint's too).
     pub connections: Limits,
     /// Limits on requests in transit.
@@ -291,6 +297,7 @@ impl ServeConfig {
                 _ => anyhow::bail!("tls_cert and tls_key go together"),
             },
             metrics_listen: s.metrics_listen,
+            health_listen: s.health_listen,
             connections: Limits {
                 max_connections: s.max_connections.expect(has),
                 max_streams_per_connection: s.max_streams_per_connection.expect(has),
@@ -311,10 +318,25 @@ impl ServeConfig {
             config.max_horizon_limit > 0,
             "max_horizon_limit must be at least 1"
         );
+        if let Some(health) = config.health_listen {
+            anyhow::ensure!(
+                health.port() == 0 || health.port() != config.listen.port(),
+                "health_listen {health} is the gRPC port of listen {}: the health port must be \
+                 its own (probes reach it in plaintext without a token)",
+                config.listen
+            );
+        }
         let requests = &config.requests;
         anyhow::ensure!(
             requests.max_message_bytes.is_none_or(|n| n >= 1024),
             "max_message_bytes must be at least 1024"
+        );
+        anyhow::ensure!(
+            requests
+                .max_message_bytes
+                .is_none_or(|n| n + 5 <= requests.bytes_per_connection),
+            "max_message_bytes must fit in max_request_bytes_per_connection (with its 5-byte \
+             prefix), or no message that large could be taken in; raise the budget too"
         );
         anyhow::ensure!(
             !requests.request_timeout.is_zero(),
@@ -422,6 +444,7 @@ mod tests {
             })
         );
         assert_eq!((c.auth_tokens, c.tls, c.metrics_listen), (None, None, None));
+        assert_eq!(c.health_listen, None);
         assert_eq!(
             c.connections,
             Limits {
@@ -459,6 +482,10 @@ mod tests {
             ("log_format = \"xml\"", "log_format"),
             ("strict = 1", "strict"),
             ("tls_cert = \"cert.pem\"", "tls_key go together"),
+            (
+                "listen = \"0.0.0.0:50051\"\nhealth_listen = \"0.0.0.0:50051\"",
+                "health_listen 0.0.0.0:50051 is the gRPC port",
+            ),
         ] {
             let err = format!("{:#}", resolve(text).unwrap_err());
             assert!(err.contains(named), "{text}: {err}");

@@ -42,6 +42,9 @@ const MIN_DERIVED_MESSAGE: usize = 16 * 1024;
 /// The path prefix of the calls that carry a token.
 const PRAC_PATH: &str = "/prac.v1.Prac/";
 
+/// The one call whose request may carry a plan.
+const OPEN_SESSION_PATH: &str = "/prac.v1.Prac/OpenSession";
+
 /// Calls whose requests are streams: only each message, not the whole body, must complete in time.
 const STREAMED_REQUESTS: [&str; 3] = [
     "/prac.v1.Prac/StepStream",
@@ -62,6 +65,29 @@ pub struct RequestLimits {
     pub max_message_bytes: Option<usize>,
 }
 
+/// The largest requests the loaded bundles allow: an OpenSession's, and every other prac.v1 call's.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) struct RequestSizes {
+    pub open_session: usize,
+    pub other: usize,
+}
+
+impl Default for RequestSizes {
+    /// With no bundle loaded: room for ids, names and options.
+    fn default() -> Self {
+        RequestSizes {
+            open_session: MIN_DERIVED_MESSAGE,
+            other: SMALL_MESSAGE,
+        }
+    }
+}
+
+/// The largest Step (or StepStream message) a policy observing `obs_dim` floats allows, and every
+/// other call but OpenSession: a session id and an observation, generously.
+pub(super) fn largest_step_bytes(obs_dim: usize) -> usize {
+    (8 * obs_dim + 1024).max(SMALL_MESSAGE)
+}
+
 /// The largest encoded prac.v1 request a policy of these dimensions allows: an OpenSession
 /// resuming a plan of `max_horizon` actions, each with its predicted observation, as the client's
 /// last StepResponse carries them; packed floats plus every tag, length and varint, generously.
@@ -75,8 +101,9 @@ pub(super) fn largest_request_bytes(max_horizon: usize, obs_dim: usize, act_dim:
 pub(super) struct Intake {
     limits: RequestLimits,
     tokens: Option<Arc<Tokens>>,
-    /// Largest prac.v1 request message now.
-    max_message: AtomicUsize,
+    /// Largest OpenSession request message now, and largest of every other prac.v1 call.
+    max_open_session: AtomicUsize,
+    max_other: AtomicUsize,
     held: AtomicUsize,
     metrics: Arc<Metrics>,
     pub(super) refused: AtomicU64,
@@ -91,23 +118,44 @@ impl Intake {
         Intake {
             limits,
             tokens,
-            max_message: AtomicUsize::new(limits.max_message_bytes.unwrap_or(MIN_DERIVED_MESSAGE)),
+            max_open_session: AtomicUsize::new(
+                limits.max_message_bytes.unwrap_or(MIN_DERIVED_MESSAGE),
+            ),
+            max_other: AtomicUsize::new(limits.max_message_bytes.unwrap_or(SMALL_MESSAGE)),
             held: AtomicUsize::new(0),
             metrics,
             refused: AtomicU64::new(0),
         }
     }
 
-    /// The loaded bundles' largest valid request: the message limit unless one is set.
-    pub(super) fn bundles_need(&self, bytes: usize) {
-        let limit = self.limits.max_message_bytes.unwrap_or(bytes);
-        if self.max_message.swap(limit, Ordering::Relaxed) != limit {
-            tracing::info!(max_message_bytes = limit, "request message limit");
+    /// The loaded bundles' largest valid requests: the message limits unless one is set.
+    pub(super) fn bundles_need(&self, sizes: RequestSizes) {
+        let (open_session, other) = match self.limits.max_message_bytes {
+            Some(limit) => (limit, limit),
+            None => (sizes.open_session, sizes.other),
+        };
+        let before = self.max_open_session.swap(open_session, Ordering::Relaxed);
+        self.max_other.store(other, Ordering::Relaxed);
+        if before != open_session {
+            tracing::info!(
+                open_session_bytes = open_session,
+                other_calls_bytes = other,
+                "request message limits"
+            );
+        }
+        if open_session + 5 > self.limits.bytes_per_connection {
+            tracing::warn!(
+                open_session_bytes = open_session,
+                per_connection = self.limits.bytes_per_connection,
+                "the largest OpenSession request is over --max-request-bytes-per-connection: such \
+                 requests will be refused; raise the budget"
+            );
         }
     }
 
-    pub(super) fn max_message(&self) -> usize {
-        self.max_message.load(Ordering::Relaxed)
+    /// The largest OpenSession request message now.
+    pub(super) fn max_open_session(&self) -> usize {
+        self.max_open_session.load(Ordering::Relaxed)
     }
 
     /// Bytes held now over all connections.
@@ -142,7 +190,9 @@ impl Intake {
                 self.limits.bytes_per_connection
             ))));
         }
-        if self.held() >= self.limits.bytes_total {
+        // Health and reflection requests are small and open to all: they count against their
+        // connection alone, so that no number of them can spend what prac calls share.
+        if prac && self.held() >= self.limits.bytes_total {
             return Err(self.refuse(server_full(self.limits.bytes_total)));
         }
         let streamed = STREAMED_REQUESTS.contains(&path);
@@ -152,29 +202,37 @@ impl Intake {
             .get("grpc-timeout")
             .and_then(|v| super::deadline::parse(v.to_str().ok()?))
             .map(|timeout| now + timeout);
-        let max_message = if prac {
-            self.max_message()
+        let max_message = if path == OPEN_SESSION_PATH {
+            self.max_open_session()
+        } else if prac {
+            self.max_other.load(Ordering::Relaxed)
         } else {
             SMALL_MESSAGE
         };
+        let (mut parts, incoming) = request.into_parts();
+        let message_due = streamed.then(MessageDue::default);
+        if let Some(due) = &message_due {
+            parts.extensions.insert(due.clone());
+        }
         let mut body = IntakeBody {
-            inner: None,
+            inner: Some(incoming),
             intake: self.clone(),
             connection: connection.clone(),
             max_message,
+            counts_in_total: prac,
             streamed,
             call_deadline,
             due: None,
+            message_due,
             timer: None,
             framing: Framing::default(),
             holding: None,
+            messages: 0,
             failed: false,
         };
         if !streamed {
-            body.due = Some(body.bound(now));
+            body.set_due(Some(body.bound(now)));
         }
-        let (parts, incoming) = request.into_parts();
-        body.inner = Some(incoming);
         Ok(http::Request::from_parts(parts, body))
     }
 }
@@ -208,11 +266,75 @@ impl ConnectionIntake {
     }
 }
 
+/// When the message a streamed request has begun must be complete, shared with the call's
+/// handler. A handler that stops reading its requests (its client does not read the answers, so
+/// the handler waits to hand one over) would never see the body's own timer fire: it waits on
+/// [`MessageDue::passed`] as well and ends the stream then, letting go of what the message held.
+#[derive(Clone, Default)]
+pub(super) struct MessageDue(Arc<MessageDueState>);
+
+#[derive(Default)]
+struct MessageDueState {
+    due: Mutex<Option<Instant>>,
+    changed: tokio::sync::Notify,
+}
+
+impl MessageDue {
+    fn set(&self, due: Option<Instant>) {
+        *self.0.due.lock().unwrap_or_else(|p| p.into_inner()) = due;
+        self.0.changed.notify_waiters();
+    }
+
+    fn get(&self) -> Option<Instant> {
+        *self.0.due.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Resolves once a message is due and not complete by then.
+    pub(super) async fn passed(&self) {
+        loop {
+            let changed = self.0.changed.notified();
+            tokio::pin!(changed);
+            changed.as_mut().enable();
+            match self.get() {
+                None => changed.await,
+                Some(due) => {
+                    tokio::select! {
+                        _ = tokio::time::sleep_until(due.into()) => {
+                            if self.get() == Some(due) {
+                                return;
+                            }
+                        }
+                        _ = changed => {}
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Resolves when `due` passes; never without one.
+pub(super) async fn message_overdue(due: Option<&MessageDue>) {
+    match due {
+        Some(due) => due.passed().await,
+        None => std::future::pending().await,
+    }
+}
+
+/// The answer to a streamed call whose begun message did not complete in time.
+pub(super) fn message_overdue_status() -> Status {
+    Status::deadline_exceeded(
+        "a request message was not complete within the request timeout (--request-timeout) or \
+         the call's deadline",
+    )
+}
+
 /// Declared bytes of one unfinished message, given back when dropped.
 struct Holding {
     intake: Arc<Intake>,
     connection: Arc<ConnectionIntake>,
     bytes: usize,
+    /// Counted in the server-wide total too (prac.v1 calls).
+    in_total: bool,
 }
 
 impl Holding {
@@ -220,13 +342,19 @@ impl Holding {
         intake: &Arc<Intake>,
         connection: &Arc<ConnectionIntake>,
         bytes: usize,
+        in_total: bool,
     ) -> Result<Holding, Status> {
         let on_connection = connection.held.fetch_add(bytes, Ordering::Relaxed) + bytes;
-        let in_all = intake.held.fetch_add(bytes, Ordering::Relaxed) + bytes;
+        let in_all = if in_total {
+            intake.held.fetch_add(bytes, Ordering::Relaxed) + bytes
+        } else {
+            0
+        };
         let holding = Holding {
             intake: intake.clone(),
             connection: connection.clone(),
             bytes,
+            in_total,
         };
         if on_connection > intake.limits.bytes_per_connection {
             return Err(Status::resource_exhausted(format!(
@@ -247,7 +375,9 @@ impl Drop for Holding {
         self.connection
             .held
             .fetch_sub(self.bytes, Ordering::Relaxed);
-        self.intake.held.fetch_sub(self.bytes, Ordering::Relaxed);
+        if self.in_total {
+            self.intake.held.fetch_sub(self.bytes, Ordering::Relaxed);
+        }
     }
 }
 
@@ -273,13 +403,20 @@ pub(super) struct IntakeBody {
     intake: Arc<Intake>,
     connection: Arc<ConnectionIntake>,
     max_message: usize,
+    /// A prac.v1 call: its messages count in the server-wide total.
+    counts_in_total: bool,
     streamed: bool,
     call_deadline: Option<Instant>,
-    /// When the request (unary) or the message in progress (streamed) must be complete.
+    /// When the request (unary: up to its end of stream) or the message in progress (streamed)
+    /// must be complete.
     due: Option<Instant>,
+    /// The same, shared with a streamed call's handler (see [`MessageDue`]).
+    message_due: Option<MessageDue>,
     timer: Option<Pin<Box<tokio::time::Sleep>>>,
     framing: Framing,
     holding: Option<Holding>,
+    /// Messages completed so far.
+    messages: u64,
     failed: bool,
 }
 
@@ -290,12 +427,30 @@ impl IntakeBody {
         self.call_deadline.map_or(own, |d| d.min(own))
     }
 
+    fn set_due(&mut self, due: Option<Instant>) {
+        self.due = due;
+        if due.is_none() {
+            self.timer = None;
+        }
+        if let Some(shared) = &self.message_due {
+            shared.set(due);
+        }
+    }
+
+    /// Ends the body with `status`: what it held is let go, and what the client sends after is
+    /// never read (h2 releases it as the stream closes).
     fn fail(&mut self, status: Status) -> Status {
         self.failed = true;
         self.holding = None;
-        self.due = None;
-        self.timer = None;
-        self.intake.refuse(status)
+        self.inner = None;
+        self.set_due(None);
+        if self.streamed {
+            // A streamed call's handler ends its stream with the status and counts it there.
+            self.intake.refused.fetch_add(1, Ordering::Relaxed);
+            status
+        } else {
+            self.intake.refuse(status)
+        }
     }
 
     /// Follows the framing through one DATA frame.
@@ -304,7 +459,7 @@ impl IntakeBody {
         while !rest.is_empty() {
             if self.framing.body_left == 0 {
                 if self.framing.prefix_read == 0 && self.streamed {
-                    self.due = Some(self.bound(Instant::now()));
+                    self.set_due(Some(self.bound(Instant::now())));
                 }
                 let n = (5 - self.framing.prefix_read).min(rest.len());
                 let at = self.framing.prefix_read;
@@ -326,7 +481,12 @@ impl IntakeBody {
                         self.max_message
                     )));
                 }
-                self.holding = Some(Holding::take(&self.intake, &self.connection, declared + 5)?);
+                self.holding = Some(Holding::take(
+                    &self.intake,
+                    &self.connection,
+                    declared + 5,
+                    self.counts_in_total,
+                )?);
                 self.framing.body_left = declared;
             } else {
                 let n = self.framing.body_left.min(rest.len());
@@ -343,9 +503,21 @@ impl IntakeBody {
     fn message_complete(&mut self) {
         // tonic decodes a complete message at once: what it held is given back.
         self.holding = None;
-        self.due = None;
-        self.timer = None;
-        self.connection.passed();
+        self.messages += 1;
+        if self.streamed {
+            self.set_due(None);
+            self.connection.passed();
+        }
+        // A unary request is complete only at its end of stream: tonic waits for it before the
+        // handler runs, so its bound stays until then.
+    }
+
+    fn end_of_stream(&mut self) {
+        self.holding = None;
+        self.set_due(None);
+        if self.messages > 0 {
+            self.connection.passed();
+        }
     }
 }
 
@@ -371,15 +543,19 @@ impl HttpBody for IntakeBody {
                 {
                     return Poll::Ready(Some(Err(this.fail(status).into())));
                 }
+                if frame.is_trailers() || this.inner.as_ref().is_some_and(|b| b.is_end_stream()) {
+                    this.end_of_stream();
+                }
                 return Poll::Ready(Some(Ok(frame)));
             }
             Poll::Ready(Some(Err(e))) => {
+                this.failed = true;
                 this.holding = None;
+                this.set_due(None);
                 return Poll::Ready(Some(Err(e.into())));
             }
             Poll::Ready(None) => {
-                this.holding = None;
-                this.due = None;
+                this.end_of_stream();
                 return Poll::Ready(None);
             }
             Poll::Pending => {}
@@ -396,16 +572,14 @@ impl HttpBody for IntakeBody {
         }
         match timer.as_mut().poll(cx) {
             Poll::Ready(()) => {
-                let what = if this.streamed {
-                    "a request message was not complete"
+                let status = if this.streamed {
+                    message_overdue_status()
                 } else {
-                    "the request was not complete"
+                    Status::deadline_exceeded(
+                        "the request was not complete (its message and end of stream) within \
+                         the request timeout (--request-timeout) or the call's deadline",
+                    )
                 };
-                let status = Status::deadline_exceeded(format!(
-                    "{what} within the request timeout (--request-timeout {:?}) or the call's \
-                     deadline",
-                    this.intake.limits.request_timeout
-                ));
                 Poll::Ready(Some(Err(this.fail(status).into())))
             }
             Poll::Pending => Poll::Pending,
@@ -438,5 +612,10 @@ mod tests {
             "{humanoid}"
         );
         assert_eq!(largest_request_bytes(1, 1, 1), MIN_DERIVED_MESSAGE);
+        assert!(largest_step_bytes(44) >= 44 * 4 + 64);
+        // No bundle loaded: room for ids and options, never a limit of 0.
+        let empty = super::super::registry::Registry::default().largest_requests(256);
+        assert_eq!(empty, RequestSizes::default());
+        assert!(empty.open_session >= MIN_DERIVED_MESSAGE && empty.other >= SMALL_MESSAGE);
     }
 }

@@ -30,7 +30,7 @@ pub(super) async fn give_back_after_bursts(
     shutdown: CancellationToken,
 ) {
     let mut tick = tokio::time::interval(PERIOD);
-    let mut connections_high = 0;
+    let (mut calls_high, mut connections_high) = (0, 0);
     let mut trims_left = 0;
     loop {
         tokio::select! {
@@ -38,15 +38,15 @@ pub(super) async fn give_back_after_bursts(
             _ = tick.tick() => {}
         }
         let calls = stats.calls_in_flight.load(Ordering::Relaxed);
-        // The peak since the last look, however brief, and the count now as the next one's start.
-        let calls_high = stats.calls_in_flight_peak.swap(calls, Ordering::Relaxed);
+        // The peak since the last look, however brief (the count now starts the next one's).
+        calls_high = calls_high.max(stats.calls_in_flight_peak.swap(calls, Ordering::Relaxed));
         let connections = stats.open.load(Ordering::Relaxed);
         connections_high = connections_high.max(connections);
         if calls_high.saturating_sub(calls) >= CALLS_BURST
             || connections_high - connections >= CONNECTIONS_BURST
         {
             trims_left = TRIMS_PER_BURST;
-            connections_high = connections;
+            (calls_high, connections_high) = (calls, connections);
         }
         if trims_left > 0 {
             trims_left -= 1;

@@ -34,6 +34,9 @@ pub use session::{Session, SessionSettings};
 
 use crate::proto::{self, prac_server::PracServer};
 
+/// Connections the health port holds at once: probes are few.
+const PROBE_CONNECTIONS: usize = 64;
+
 /// Largest response (and request, by tonic's own check) when `--max-message-bytes` is not set.
 const DEFAULT_MAX_RESPONSE_BYTES: usize = 4 << 20;
 
@@ -75,9 +78,13 @@ async fn termination_signal() {
     let _ = ctrl_c.await;
 }
 
-/// Hot reload: on each SIGHUP, re-reads the bundle directory ([`Registry::reload`]). New sessions
-/// get the new versions; open sessions keep the policy they opened with until they close; a
-/// broken new file keeps the old version.
+/// While no policy is served (an empty, missing or unreadable bundle directory, as a volume not
+/// yet filled), the directory is read again this often.
+const RETRY_EMPTY_BUNDLES: std::time::Duration = std::time::Duration::from_secs(10);
+
+/// Hot reload: on each SIGHUP, and every [`RETRY_EMPTY_BUNDLES`] while nothing is served, re-reads
+/// the bundle directory ([`Registry::reload`]). New sessions get the new versions; open sessions
+/// keep the policy they opened with until they close; a broken new file keeps the old version.
 #[cfg(unix)]
 async fn reload_on_hangup(state: Arc<ServerState>, dir: std::path::PathBuf, health: Health) {
     let mut hangup = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()) {
@@ -87,7 +94,30 @@ async fn reload_on_hangup(state: Arc<ServerState>, dir: std::path::PathBuf, heal
             return;
         }
     };
-    while hangup.recv().await.is_some() {
+    let mut retry = tokio::time::interval(RETRY_EMPTY_BUNDLES);
+    retry.tick().await;
+    loop {
+        let serving_none = state
+            .registry
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .as_ref()
+            .is_none_or(|r| r.is_empty());
+        let retrying = tokio::select! {
+            signal = hangup.recv() => {
+                if signal.is_none() {
+                    return;
+                }
+                false
+            }
+            _ = retry.tick(), if serving_none => true,
+            // Looks again at whether anything is served.
+            _ = tokio::time::sleep(RETRY_EMPTY_BUNDLES), if !serving_none => continue,
+        };
+        if retrying && std::fs::read_dir(&dir).is_err() {
+            // Still unreadable: said once at start, not every retry.
+            continue;
+        }
         let current = state
             .registry
             .read()
@@ -109,6 +139,10 @@ async fn reload_on_hangup(state: Arc<ServerState>, dir: std::path::PathBuf, heal
                 continue;
             }
         };
+        if retrying && report.added.is_empty() && report.errors.is_empty() {
+            // Still nothing to serve: not a reload worth a log line or a count.
+            continue;
+        }
         for error in &report.errors {
             tracing::error!(%error, "reload: bad bundle (a loaded version of it, if any, stays)");
         }
@@ -124,7 +158,7 @@ async fn reload_on_hangup(state: Arc<ServerState>, dir: std::path::PathBuf, heal
         let serving = !registry.is_empty();
         state
             .intake
-            .bundles_need(registry.largest_request_bytes(state.max_horizon_limit));
+            .bundles_need(registry.largest_requests(state.max_horizon_limit));
         *state.registry.write().unwrap_or_else(|p| p.into_inner()) = Some(Arc::new(registry));
         if !state.shutdown.is_cancelled() {
             health
@@ -143,6 +177,8 @@ pub struct Bound {
     pub grpc: TcpListener,
     /// The Prometheus endpoint's, when asked for.
     pub metrics: Option<TcpListener>,
+    /// The plaintext health port's, when asked for.
+    pub health: Option<TcpListener>,
     tls: Option<tokio_rustls::TlsAcceptor>,
     auth: Option<auth::Tokens>,
     limits: transport::Limits,
@@ -189,8 +225,13 @@ pub async fn bind(config: &ServeConfig) -> anyhow::Result<Bound> {
             "the open-file limit (ulimit -n) allows fewer connections than asked; raise it to serve more"
         );
     }
-    std::fs::read_dir(&config.bundles)
-        .with_context(|| format!("cannot read bundle directory {}", config.bundles.display()))?;
+    if config.strict {
+        // Without --strict an unreadable directory leaves the server up, NOT_SERVING (a volume
+        // not yet mounted); with it, nothing may be missing.
+        std::fs::read_dir(&config.bundles).with_context(|| {
+            format!("cannot read bundle directory {}", config.bundles.display())
+        })?;
+    }
     let grpc = TcpListener::bind(config.listen)
         .await
         .with_context(|| format!("cannot listen on {}", config.listen))?;
@@ -202,9 +243,18 @@ pub async fn bind(config: &ServeConfig) -> anyhow::Result<Bound> {
         ),
         None => None,
     };
+    let health = match config.health_listen {
+        Some(at) => Some(
+            TcpListener::bind(at)
+                .await
+                .with_context(|| format!("cannot listen for health probes on {at}"))?,
+        ),
+        None => None,
+    };
     Ok(Bound {
         grpc,
         metrics,
+        health,
         tls,
         auth,
         limits,
@@ -219,6 +269,9 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
         // Printed before the gRPC address, which scripts wait for as the ready line.
         println!("metrics on {}", metrics.local_addr()?);
     }
+    if let Some(health) = &bound.health {
+        println!("health on {}", health.local_addr()?);
+    }
     let addr = bound.grpc.local_addr()?;
     println!("listening on {addr}");
     tracing::info!(%addr, bundles = %config.bundles.display(), "listening");
@@ -228,6 +281,10 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
 /// The health service's view of the server: NOT_SERVING until bundles load and from shutdown on.
 #[derive(Clone)]
 struct Health(tonic_health::server::HealthReporter);
+
+/// The health service that answers SERVING for as long as the process answers at all: a
+/// liveness probe's, where `""` and `prac.v1.Prac` (readiness) follow the bundles and the drain.
+pub const LIVENESS_SERVICE: &str = "liveness";
 
 impl Health {
     async fn set(&self, status: ServingStatus) {
@@ -254,6 +311,15 @@ pub async fn serve(
     let health_service = tonic_health::pb::health_server::HealthServer::new(
         health::ShutdownAwareHealth::new(reporter.clone(), cancel.clone()),
     );
+    let probe_health = bound.health.as_ref().map(|_| {
+        tonic_health::pb::health_server::HealthServer::new(health::ShutdownAwareHealth::new(
+            reporter.clone(),
+            cancel.clone(),
+        ))
+    });
+    reporter
+        .set_service_status(LIVENESS_SERVICE, ServingStatus::Serving)
+        .await;
     let health = Health(reporter);
     health.set(ServingStatus::NotServing).await;
     // Reflection in both versions: grpcurl and grpcio's reflection client speak v1, Postman,
@@ -306,6 +372,27 @@ pub async fn serve(
         cancel.clone(),
     );
     let mut server = tokio::spawn(server);
+    if let (Some(listener), Some(probe_health)) = (bound.health, probe_health) {
+        // Plaintext, no token, grpc.health.v1 alone: what the kubelet's gRPC probes can reach.
+        let limits = transport::Limits {
+            max_connections: bound.limits.max_connections.min(PROBE_CONNECTIONS),
+            ..bound.limits
+        };
+        let intake = Arc::new(intake::Intake::new(
+            config.requests,
+            None,
+            state.metrics.clone(),
+        ));
+        tokio::spawn(transport::serve_grpc(
+            listener,
+            None,
+            tonic::service::Routes::new(probe_health),
+            limits,
+            intake,
+            Arc::new(transport::ConnectionStats::default()),
+            cancel.clone(),
+        ));
+    }
     if let Some(listener) = bound.metrics {
         let (sessions, metrics) = (state.sessions.clone(), state.metrics.clone());
         let scrape: metrics::Scrape = Arc::new(move || metrics.encode(sessions.len()));
@@ -413,8 +500,19 @@ async fn install_bundles(
     health: &Health,
     loaded: std::io::Result<registry::Loaded>,
 ) -> anyhow::Result<()> {
-    let loaded = loaded
-        .with_context(|| format!("cannot read bundle directory {}", config.bundles.display()))?;
+    let loaded = match loaded {
+        Ok(loaded) => loaded,
+        Err(e) if !config.strict => {
+            // A volume not mounted or not yet filled: stay up, NOT_SERVING, and look again.
+            tracing::error!(dir = %config.bundles.display(), error = %e, "cannot read bundle directory; serving nothing (health NOT_SERVING) until it can be read: read again every 10 s and on SIGHUP");
+            return Ok(());
+        }
+        Err(e) => {
+            return Err(e).with_context(|| {
+                format!("cannot read bundle directory {}", config.bundles.display())
+            });
+        }
+    };
     for error in &loaded.errors {
         tracing::error!(%error, "skipping bad bundle");
     }
@@ -431,14 +529,12 @@ async fn install_bundles(
         );
     }
     let count = loaded.registry.len();
-    state.intake.bundles_need(
-        loaded
-            .registry
-            .largest_request_bytes(config.max_horizon_limit),
-    );
+    state
+        .intake
+        .bundles_need(loaded.registry.largest_requests(config.max_horizon_limit));
     *state.registry.write().unwrap_or_else(|p| p.into_inner()) = Some(Arc::new(loaded.registry));
     if count == 0 {
-        tracing::warn!(dir = %config.bundles.display(), "no bundles loaded; health stays NOT_SERVING");
+        tracing::warn!(dir = %config.bundles.display(), "no bundles loaded; health stays NOT_SERVING (the directory is read again every 10 s and on SIGHUP)");
     } else if !state.shutdown.is_cancelled() {
         health.set(ServingStatus::Serving).await;
         // A signal that came in meanwhile has set NOT_SERVING already: restore it.

@@ -34,13 +34,16 @@ impl Registry {
     pub(super) fn is_empty(&self) -> bool {
         self.policies.is_empty()
     }
-    /// The largest valid request any served policy allows with plans of at most `max_horizon`.
-    pub(super) fn largest_request_bytes(&self, max_horizon: usize) -> usize {
-        self.policies
-            .values()
-            .map(|p| super::intake::largest_request_bytes(max_horizon, p.obs_dim(), p.act_dim()))
-            .max()
-            .unwrap_or(0)
+    /// The largest valid requests any served policy allows with plans of at most `max_horizon`.
+    pub(super) fn largest_requests(&self, max_horizon: usize) -> super::intake::RequestSizes {
+        use super::intake::{largest_request_bytes, largest_step_bytes};
+        let mut sizes = super::intake::RequestSizes::default();
+        for p in self.policies.values() {
+            let open = largest_request_bytes(max_horizon, p.obs_dim(), p.act_dim());
+            sizes.open_session = sizes.open_session.max(open);
+            sizes.other = sizes.other.max(largest_step_bytes(p.obs_dim()));
+        }
+        sizes
     }
 
     pub(super) fn names(&self) -> Vec<&str> {

@@ -14,6 +14,7 @@ use tonic::{Request, Response, Status, Streaming};
 use super::arrival::Arrival;
 use super::batch::{Answer, Batcher};
 use super::deadline;
+use super::intake::{MessageDue, message_overdue, message_overdue_status};
 use super::metrics::ReplannedBy;
 use super::registry::Registry;
 use super::session::{
@@ -349,6 +350,7 @@ impl Prac for PracService {
         // The stream's deadline bounds each of its steps.
         let deadline = deadline::of(request.metadata(), Instant::now());
         let caller = self.state.caller(request.metadata())?;
+        let message_due = request.extensions().get::<MessageDue>().cloned();
         let mut inbound = request.into_inner();
         let (tx, rx) = mpsc::channel(STREAM_BUFFER);
         let state = self.state.clone();
@@ -380,12 +382,20 @@ impl Prac for PracService {
                             Ok(answered) => (Ok(answered.response), Some(answered.undo)),
                             Err(status) => (Err(status), None),
                         };
-                        if !send(&tx, response, &state.shutdown).await {
+                        // While the client does not read its answers, a message it has begun
+                        // still must complete in time: past that, the stream ends.
+                        let handed = tokio::select! {
+                            biased;
+                            handed = send(&tx, response, &state.shutdown) => handed.then_some(()).ok_or_else(shutting_down),
+                            _ = message_overdue(message_due.as_ref()) => Err(message_overdue_status()),
+                        };
+                        if let Err(status) = handed {
                             // Not handed to the stream: the client never sees this step.
                             if let Some(applied) = applied {
                                 applied.take_back();
                             }
-                            let _ = tx.try_send(Err(shutting_down()));
+                            state.metrics.error(&status);
+                            let _ = tx.try_send(Err(status));
                             break;
                         }
                         // The first error ends the stream (gRPC carries a status only at the end).

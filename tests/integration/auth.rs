@@ -176,3 +176,68 @@ async fn tls_serves_clients_that_trust_the_certificate() {
     assert!(!out.status.success());
     assert!(out.stdout.is_empty(), "it never listened");
 }
+
+/// `--health-listen`: a plaintext port that answers grpc.health.v1 alone, without a token, for
+/// probes (the kubelet's speak neither TLS nor tokens) while the main port wants both.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_health_port_answers_health_alone_in_plaintext() {
+    use tonic_health::pb::health_check_response::ServingStatus;
+    use tonic_health::pb::{HealthCheckRequest, health_client::HealthClient};
+    let bundles = bundle_dir();
+    let tokens = bundles.path().join("tokens.txt");
+    std::fs::write(&tokens, format!("{ALICE}\n")).unwrap();
+    let (cert_pem, cert, key) = common::tls_files(bundles.path());
+    let server = Server::start(
+        bundles.path(),
+        &[
+            "--auth-tokens",
+            tokens.to_str().unwrap(),
+            "--tls-cert",
+            cert.to_str().unwrap(),
+            "--tls-key",
+            key.to_str().unwrap(),
+            "--health-listen",
+            "127.0.0.1:0",
+        ],
+    );
+    let health_addr = server
+        .preamble
+        .iter()
+        .find_map(|l| l.strip_prefix("health on "))
+        .expect("the health address")
+        .to_string();
+    let channel = prac::client::channel(&health_addr).await.unwrap();
+    let mut health = HealthClient::new(channel.clone());
+    let check = |service: &str| HealthCheckRequest {
+        service: service.to_string(),
+    };
+    let start = std::time::Instant::now();
+    loop {
+        let status = health
+            .check(check("prac.v1.Prac"))
+            .await
+            .unwrap()
+            .into_inner();
+        if status.status() == ServingStatus::Serving {
+            break;
+        }
+        assert!(start.elapsed() < std::time::Duration::from_secs(20));
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    let liveness = health.check(check("liveness")).await.unwrap().into_inner();
+    assert_eq!(liveness.status(), ServingStatus::Serving);
+    // Nothing else is served there: not prac.v1, not reflection.
+    let mut prac = proto::prac_client::PracClient::new(channel);
+    let refused = prac
+        .list_policies(with_token(proto::ListPoliciesRequest {}, Some(ALICE)))
+        .await
+        .unwrap_err();
+    assert_eq!(refused.code(), Code::Unimplemented, "{refused:?}");
+    // The main port still wants TLS and a token.
+    let mut client = proto::prac_client::PracClient::new(server.tls_channel(&cert_pem).await);
+    let denied = client
+        .list_policies(with_token(proto::ListPoliciesRequest {}, None))
+        .await
+        .unwrap_err();
+    assert_eq!(denied.code(), Code::Unauthenticated);
+}

@@ -76,11 +76,12 @@ fn a_manifest_declaring_a_billion_critics_is_an_error_not_an_abort() {
 }
 
 #[test]
-fn serve_on_a_missing_bundle_directory_fails_before_its_ready_line() {
+fn serve_strict_on_a_missing_bundle_directory_fails_before_its_ready_line() {
     let out = prac(&[
         "serve",
         "--listen",
         "127.0.0.1:0",
+        "--strict",
         "--bundles",
         "/nonexistent/prac-bundles",
     ]);
@@ -94,6 +95,26 @@ fn serve_on_a_missing_bundle_directory_fails_before_its_ready_line() {
     assert!(
         err.contains("cannot read bundle directory /nonexistent/prac-bundles"),
         "{err}"
+    );
+}
+
+/// A volume not mounted or not yet filled: the server stays up, NOT_SERVING (a readiness probe
+/// fails, a liveness probe passes: no crash loop), with the reason in its log.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn serve_on_a_missing_bundle_directory_stays_up_not_serving() {
+    use tonic_health::pb::health_check_response::ServingStatus;
+    let server = common::Server::start(std::path::Path::new("/nonexistent/prac-bundles"), &[]);
+    tokio::time::sleep(std::time::Duration::from_millis(300)).await;
+    assert_eq!(
+        server.health("prac.v1.Prac").await,
+        ServingStatus::NotServing
+    );
+    assert_eq!(server.health("").await, ServingStatus::NotServing);
+    assert_eq!(server.health("liveness").await, ServingStatus::Serving);
+    let log = server.stderr();
+    assert!(
+        log.contains("cannot read bundle directory") && log.contains("/nonexistent/prac-bundles"),
+        "{log}"
     );
 }
 

@@ -244,3 +244,80 @@ async fn a_streamed_message_must_complete_once_begun() {
     assert_eq!(trailers.get("grpc-status").unwrap(), CODE_DEADLINE_EXCEEDED);
     assert!(started.elapsed() >= Duration::from_millis(900));
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_unary_request_without_its_end_of_stream_times_out() {
+    let bundles = bundle_dir();
+    let server = Server::start(bundles.path(), &["--request-timeout", "1s"]);
+    server.wait_serving().await;
+    let (send, _connection) = h2_connect(&server.addr).await;
+    // A whole message, but no END_STREAM: tonic waits for it before the handler runs.
+    let request = grpc_request(&server.addr, "/grpc.health.v1.Health/Check");
+    let mut ready = send.clone().ready().await.unwrap();
+    let (mut response, mut body) = ready.send_request(request, false).unwrap();
+    body.send_data(unfinished_message(0, 0), false).unwrap();
+    let started = Instant::now();
+    let status = status_of(&mut response, Duration::from_secs(5)).await;
+    assert_eq!(status.as_deref(), Some(CODE_DEADLINE_EXCEEDED));
+    assert!(started.elapsed() >= Duration::from_millis(900));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stream_that_is_never_read_lets_go_of_a_begun_message() {
+    let bundles = bundle_dir();
+    let server = Server::start(
+        bundles.path(),
+        &[
+            "--request-timeout",
+            "1s",
+            "--max-request-bytes-per-connection",
+            "4096",
+        ],
+    );
+    server.wait_serving().await;
+    let mut client = server.client().await;
+    let session = open_default_session(&mut client, "toy").await;
+    // A client window of 256 bytes: the server's answers stall after a few, and the stream's
+    // handler waits to hand one over instead of reading requests.
+    let tcp = tokio::net::TcpStream::connect(&server.addr).await.unwrap();
+    let (send, connection) = h2::client::Builder::new()
+        .initial_window_size(256)
+        .handshake::<_, Bytes>(tcp)
+        .await
+        .unwrap();
+    let _connection = tokio::spawn(connection);
+    let request = grpc_request(&server.addr, "/prac.v1.Prac/StepStream");
+    let mut ready = send.clone().ready().await.unwrap();
+    let (_response, mut body) = ready.send_request(request, false).unwrap();
+    // One DATA frame: 40 steps, then a message that declares the connection's whole budget and
+    // never finishes. The server takes the frame in at once, so the budget is spent while the
+    // handler is still answering the steps.
+    let mut frame = Vec::new();
+    for t in 0..40 {
+        let step = proto::StepRequest {
+            session_id: session.clone(),
+            observation: vec![0.01 * t as f32; common::OBS],
+            new_episode: t == 0,
+        };
+        frame.extend_from_slice(&common::grpc_frame(&step));
+    }
+    frame.extend_from_slice(&unfinished_message(4091, 10));
+    body.send_data(Bytes::from(frame), false).unwrap();
+    tokio::time::sleep(Duration::from_millis(2500)).await;
+    // Past the request timeout the stream has ended and let go of its budget: the connection
+    // takes a new call again.
+    let mut send = send;
+    let request = tonic_health::pb::HealthCheckRequest::default();
+    let (status, _) = common::h2_unary(
+        &mut send,
+        &server.addr,
+        "/grpc.health.v1.Health/Check",
+        &request,
+        None,
+    )
+    .await;
+    assert_eq!(
+        status, "0",
+        "the connection still holds the stalled stream's budget"
+    );
+}
