@@ -19,7 +19,7 @@
 
 use std::future::Future as _;
 use std::pin::Pin;
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::task::{Context, Poll};
 use std::time::{Duration, Instant};
@@ -106,7 +106,6 @@ pub(super) struct Intake {
     max_other: AtomicUsize,
     held: AtomicUsize,
     metrics: Arc<Metrics>,
-    pub(super) refused: AtomicU64,
 }
 
 impl Intake {
@@ -124,7 +123,6 @@ impl Intake {
             max_other: AtomicUsize::new(limits.max_message_bytes.unwrap_or(SMALL_MESSAGE)),
             held: AtomicUsize::new(0),
             metrics,
-            refused: AtomicU64::new(0),
         }
     }
 
@@ -164,7 +162,6 @@ impl Intake {
     }
 
     fn refuse(&self, status: Status) -> Status {
-        self.refused.fetch_add(1, Ordering::Relaxed);
         self.metrics.error(&status);
         status
     }
@@ -446,7 +443,6 @@ impl IntakeBody {
         self.set_due(None);
         if self.streamed {
             // A streamed call's handler ends its stream with the status and counts it there.
-            self.intake.refused.fetch_add(1, Ordering::Relaxed);
             status
         } else {
             self.intake.refuse(status)
