@@ -19,6 +19,13 @@ struct Cli {
 enum Command {
     /// Serve the bundles of a directory over gRPC (prac.v1.Prac, health, reflection).
     Serve(Box<ServeArgs>),
+    /// Wait, then exit: the Kubernetes preStop pause (deploy/k8s) in an image that carries no
+    /// shell, so that endpoints stop routing to a pod before its SIGTERM.
+    Sleep {
+        /// How long, e.g. "5s".
+        #[arg(value_parser = prac::serve::duration)]
+        duration: Duration,
+    },
     /// Validate a bundle, print its manifest and run one forward pass.
     Inspect {
         file: PathBuf,
@@ -82,6 +89,7 @@ enum Command {
         steps: usize,
     },
     /// Draw a domain (side view) to a PNG, optionally with a policy's imagined plan overlaid.
+    #[cfg(feature = "render")]
     Render {
         domain: String,
         #[arg(long, default_value_t = 0)]
@@ -119,11 +127,14 @@ enum Command {
         seed: u64,
     },
     /// Train a policy with SAC and a dynamics model (Algorithm 1) and write a bundle.
+    #[cfg(feature = "train")]
     Train(Box<prac::cli::train::TrainArgs>),
     /// (Re)train a bundle's dynamics model from recorded transitions (obs, action, next_obs).
+    #[cfg(feature = "train")]
     FitModel(prac::cli::train::FitArgs),
     /// SAC updates/s ([256, 256], batch 256), model updates/s, env steps/s while training, and
     /// the replay buffer's checkpoint save and load times.
+    #[cfg(feature = "train")]
     BenchTrain {
         /// Seconds measured per update kind.
         #[arg(long, default_value_t = 3.0)]
@@ -166,6 +177,10 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Serve(args) => serve(*args),
+        Command::Sleep { duration } => {
+            std::thread::sleep(duration);
+            Ok(())
+        }
         Command::Inspect { file, json } => {
             prac::cli::inspect::run(&file, json).map(|text| print!("{text}"))
         }
@@ -234,6 +249,7 @@ fn main() -> ExitCode {
                 .as_deref()
                 .map(|bundle| prac::cli::domains::ClosedLoop { bundle, steps }),
         ),
+        #[cfg(feature = "render")]
         Command::Render {
             domain,
             seed,
@@ -262,8 +278,11 @@ fn main() -> ExitCode {
             .build()
             .map_err(anyhow::Error::from)
             .and_then(|runtime| runtime.block_on(prac::env_rpc::serve(&domain, listen, seed))),
+        #[cfg(feature = "train")]
         Command::Train(args) => prac::cli::train::train(*args),
+        #[cfg(feature = "train")]
         Command::FitModel(args) => prac::cli::train::fit(args),
+        #[cfg(feature = "train")]
         Command::BenchTrain {
             seconds,
             domain,

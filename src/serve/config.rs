@@ -176,7 +176,8 @@ where
         .map_err(|e| format!("{text:?} is not a whole number: {e}"))
 }
 
-fn duration(text: &str) -> Result<Duration, String> {
+/// A duration such as "30s" or "5m", as flags and the config file write it.
+pub fn duration(text: &str) -> Result<Duration, String> {
     humantime::parse_duration(text)
         .map_err(|e| format!("{text:?} is not a duration such as \"30s\" or \"5m\": {e}"))
 }

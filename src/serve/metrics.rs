@@ -32,6 +32,10 @@ pub(super) struct Metrics {
     evictions: Counter,
     plan_breaks: Counter,
     forecast_length: Histogram,
+    forecast_age: Histogram,
+    serving: Gauge,
+    max_sessions: Gauge,
+    build_info: Family<Labels, Gauge>,
     errors: Family<Labels, Counter>,
     reloads: Family<Labels, Counter>,
     replanned: Family<Labels, Counter>,
@@ -39,6 +43,16 @@ pub(super) struct Metrics {
     /// counting a step allocates nothing after.
     replanned_by_handler: OnceLock<Counter>,
     replanned_by_batch_worker: OnceLock<Counter>,
+}
+
+/// What a served step's answer says, as the metrics count it.
+pub(super) struct StepAnswer {
+    /// Committed actions in the forecast.
+    pub forecast_length: usize,
+    /// f_t of the action executed now.
+    pub f_t: u64,
+    /// Whether the previous plan failed the critic's test.
+    pub broke: bool,
 }
 
 /// Where a step was replanned.
@@ -63,6 +77,10 @@ impl Default for Metrics {
             plan_breaks: Counter::default(),
             // 1 .. 256 actions.
             forecast_length: Histogram::new(exponential_buckets(1.0, 2.0, 9)),
+            forecast_age: Histogram::new(exponential_buckets(1.0, 2.0, 9)),
+            serving: Gauge::default(),
+            max_sessions: Gauge::default(),
+            build_info: Family::default(),
             errors: Family::default(),
             reloads: Family::default(),
             replanned: Family::default(),
@@ -103,6 +121,29 @@ impl Default for Metrics {
             m.forecast_length.clone(),
         );
         r.register(
+            "f_t",
+            "f_t = t + 1 - i of each executed action: steps since the step i that decided it (1 = decided now)",
+            m.forecast_age.clone(),
+        );
+        r.register(
+            "serving",
+            "1 while prac.v1.Prac is SERVING (bundles loaded, not draining), else 0: readiness",
+            m.serving.clone(),
+        );
+        r.register(
+            "max_sessions",
+            "The --max-sessions limit: open_sessions beyond it are refused",
+            m.max_sessions.clone(),
+        );
+        m.build_info
+            .get_or_create(&vec![("version", env!("CARGO_PKG_VERSION").to_string())])
+            .set(1);
+        r.register(
+            "build_info",
+            "1, labelled with the server's version",
+            m.build_info.clone(),
+        );
+        r.register(
             "errors",
             "Calls and streams that ended with an error, by gRPC status code",
             m.errors.clone(),
@@ -122,6 +163,16 @@ impl Default for Metrics {
 }
 
 impl Metrics {
+    /// Readiness as the health service reports it for prac.v1.Prac.
+    pub(super) fn set_serving(&self, serving: bool) {
+        self.serving.set(i64::from(serving));
+    }
+
+    pub(super) fn set_max_sessions(&self, limit: usize) {
+        self.max_sessions
+            .set(i64::try_from(limit).unwrap_or(i64::MAX));
+    }
+
     /// The step counter of one policy, taken once per session so a step allocates nothing.
     pub(super) fn policy_steps(&self, policy: &str) -> Counter {
         self.steps
@@ -130,10 +181,12 @@ impl Metrics {
     }
 
     /// One step served: `steps` is its policy's counter (`policy_steps`).
-    pub(super) fn step(&self, steps: &Counter, latency: Duration, forecast: usize, broke: bool) {
+    pub(super) fn step(&self, steps: &Counter, latency: Duration, answer: &StepAnswer) {
         steps.inc();
         self.step_latency.observe(latency.as_secs_f64());
-        self.forecast_length.observe(forecast as f64);
+        self.forecast_length.observe(answer.forecast_length as f64);
+        self.forecast_age.observe(answer.f_t as f64);
+        let broke = answer.broke;
         if broke {
             self.plan_breaks.inc();
         }

@@ -25,7 +25,7 @@ use tokio_util::sync::CancellationToken;
 use tonic_health::ServingStatus;
 
 pub use arrival::Arrival;
-pub use config::{LogFormat, ServeArgs, ServeConfig, socket_address};
+pub use config::{LogFormat, ServeArgs, ServeConfig, duration, socket_address};
 pub use intake::RequestLimits;
 use registry::Registry;
 use service::{PracService, ServerState};
@@ -278,9 +278,13 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
     serve(bound, &config, termination_signal()).await
 }
 
-/// The health service's view of the server: NOT_SERVING until bundles load and from shutdown on.
+/// The health service's view of the server: NOT_SERVING until bundles load and from shutdown on,
+/// reported to the health service and the `prac_serving` gauge alike.
 #[derive(Clone)]
-struct Health(tonic_health::server::HealthReporter);
+struct Health {
+    reporter: tonic_health::server::HealthReporter,
+    metrics: Arc<metrics::Metrics>,
+}
 
 /// The health service that answers SERVING for as long as the process answers at all: a
 /// liveness probe's, where `""` and `prac.v1.Prac` (readiness) follow the bundles and the drain.
@@ -288,8 +292,9 @@ pub const LIVENESS_SERVICE: &str = "liveness";
 
 impl Health {
     async fn set(&self, status: ServingStatus) {
-        self.0.set_service_status("", status).await;
-        self.0
+        self.metrics.set_serving(status == ServingStatus::Serving);
+        self.reporter.set_service_status("", status).await;
+        self.reporter
             .set_service_status(
                 <PracServer<PracService> as tonic::server::NamedService>::NAME,
                 status,
@@ -320,7 +325,11 @@ pub async fn serve(
     reporter
         .set_service_status(LIVENESS_SERVICE, ServingStatus::Serving)
         .await;
-    let health = Health(reporter);
+    let state = server_state(config, bound.auth, cancel.clone());
+    let health = Health {
+        reporter,
+        metrics: state.metrics.clone(),
+    };
     health.set(ServingStatus::NotServing).await;
     // Reflection in both versions: grpcurl and grpcio's reflection client speak v1, Postman,
     // older grpcurl and many others v1alpha. Both list prac.v1.Prac and grpc.health.v1.Health.
@@ -336,7 +345,6 @@ pub async fn serve(
         .build_v1alpha()
         .context("building the reflection service (v1alpha)")?;
 
-    let state = server_state(config, bound.auth, cancel.clone());
     let prac = PracServer::new(PracService {
         state: state.clone(),
     })
@@ -473,6 +481,7 @@ fn server_state(
 ) -> Arc<ServerState> {
     let auth = auth.map(Arc::new);
     let metrics = Arc::new(metrics::Metrics::default());
+    metrics.set_max_sessions(config.max_sessions);
     Arc::new(ServerState {
         intake: Arc::new(intake::Intake::new(
             config.requests,

@@ -15,7 +15,7 @@ use super::arrival::Arrival;
 use super::batch::{Answer, Batcher};
 use super::deadline;
 use super::intake::{MessageDue, message_overdue, message_overdue_status};
-use super::metrics::ReplannedBy;
+use super::metrics::{ReplannedBy, StepAnswer};
 use super::registry::Registry;
 use super::session::{
     Session, SessionError, SessionSettings, SessionSlot, Sessions, StepError, new_session_id,
@@ -203,8 +203,11 @@ impl ServerState {
             Ok((response, _)) => self.metrics.step(
                 &slot.steps_served,
                 start.elapsed(),
-                response.forecast.len(),
-                response.broke_at.is_some(),
+                &StepAnswer {
+                    forecast_length: response.forecast.len(),
+                    f_t: response.f_t,
+                    broke: response.broke_at.is_some(),
+                },
             ),
             Err(status) => self.metrics.error(status),
         }
