@@ -26,6 +26,10 @@ enum Command {
         #[arg(value_parser = prac::serve::duration)]
         duration: Duration,
     },
+    /// Check every bundle of FROM as the server loads it, then copy them all into TO (each
+    /// renamed into place); copies nothing if any is bad: the init container that moves bundles
+    /// from an image into a server's volume (deploy/k8s).
+    CopyBundles { from: PathBuf, to: PathBuf },
     /// Validate a bundle, print its manifest and run one forward pass.
     Inspect {
         file: PathBuf,
@@ -177,6 +181,14 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Serve(args) => serve(*args),
+        Command::CopyBundles { from, to } => prac::cli::bundles::copy(&from, &to).map(|names| {
+            println!(
+                "copied {} bundles to {}: {}",
+                names.len(),
+                to.display(),
+                names.join(", ")
+            )
+        }),
         Command::Sleep { duration } => {
             std::thread::sleep(duration);
             Ok(())

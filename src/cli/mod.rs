@@ -1,6 +1,7 @@
 //! Subcommands other than `serve`.
 
 pub mod bench;
+pub mod bundles;
 pub mod domains;
 pub mod evaluate;
 pub mod inspect;

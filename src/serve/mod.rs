@@ -28,6 +28,7 @@ pub use arrival::Arrival;
 pub use config::{LogFormat, ServeArgs, ServeConfig, duration, socket_address};
 pub use intake::RequestLimits;
 use registry::Registry;
+pub use registry::servable;
 use service::{PracService, ServerState};
 use session::Sessions;
 pub use session::{Session, SessionSettings};

@@ -21,6 +21,21 @@ pub(super) struct Loaded {
     pub errors: Vec<BundleError>,
 }
 
+/// Loads a bundle the way the server serves it: fully validated, with a dynamics model.
+pub fn servable(file: &Path) -> Result<Policy, BundleError> {
+    let policy = bundle::load(file)?;
+    if policy.model.is_none() {
+        return Err(BundleError {
+            file: file.to_path_buf(),
+            field: "manifest.model".into(),
+            reason: "absent: PrAC needs a dynamics model to imagine plans; add one with prac \
+                     fit-model"
+                .into(),
+        });
+    }
+    Ok(policy)
+}
+
 impl Registry {
     pub(super) fn get(&self, name: &str) -> Option<&Arc<Policy>> {
         self.policies.get(name)
@@ -123,14 +138,7 @@ impl Registry {
                 });
                 continue;
             };
-            match bundle::load(&file) {
-                Ok(policy) if policy.model.is_none() => errors.push(BundleError {
-                    file: file.clone(),
-                    field: "manifest.model".into(),
-                    reason: "absent: PrAC needs a dynamics model to imagine plans; add one with \
-                             prac fit-model"
-                        .into(),
-                }),
+            match servable(&file) {
                 Ok(policy) => {
                     if policy.manifest.name != name {
                         tracing::warn!(
