@@ -45,6 +45,10 @@ def credentials(tls: Tls) -> grpc.ChannelCredentials | None:
     return tls
 
 
+AFFINITY_HEADER = "x-prac-affinity"
+"""The metadata key an affinity proxy (deploy/nginx, deploy/k8s/overlays/envoy) hashes."""
+
+
 def metadata(token: str | None, affinity: str | None = None) -> tuple[tuple[str, str], ...]:
     """Call metadata: the bearer token (servers with auth enabled check it) and the affinity key
     (a proxy such as deploy/nginx keeps a client's calls on one replica by it)."""
@@ -52,5 +56,5 @@ def metadata(token: str | None, affinity: str | None = None) -> tuple[tuple[str,
     if token:
         entries.append(("authorization", f"Bearer {token}"))
     if affinity:
-        entries.append(("x-prac-affinity", affinity))
+        entries.append((AFFINITY_HEADER, affinity))
     return tuple(entries)

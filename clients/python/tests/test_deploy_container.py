@@ -1,0 +1,263 @@
+"""The container image as users run it (docs/deploy.md): built by `scripts/container build`, run
+by podman with a read-only root, no capabilities and uid 65532. Needs podman (skipped without it,
+unless PRAC_REQUIRE_DEPLOY is set)."""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import re
+import shutil
+import subprocess
+import threading
+import time
+import urllib.request
+from typing import Iterator
+
+import grpc
+import numpy as np
+import pytest
+from grpc_reflection.v1alpha.proto_reflection_descriptor_database import ProtoReflectionDescriptorDatabase
+
+from conftest import REPO
+from deploy_support import NOT_SERVING, SERVING, Container, built_images, free_port, health, tool, wait_health, world_readable_dir
+from prac_client import Client
+from prac_client._proto.prac.v1 import prac_pb2 as pb
+from prac_client._proto.prac.v1 import prac_pb2_grpc as pb_grpc
+
+SHIPPED = REPO / "bundles"
+MAX_BARE_IMAGE_BYTES = 40_000_000
+
+
+@pytest.fixture(scope="module")
+def images() -> dict[str, str]:
+    return built_images()
+
+
+@pytest.fixture
+def containers() -> Iterator[list[Container]]:
+    started: list[Container] = []
+    yield started
+    for c in started:
+        c.remove()
+
+
+@pytest.fixture
+def bundle_dir() -> Iterator[pathlib.Path]:
+    path = world_readable_dir("prac-bundles")
+    yield path
+    shutil.rmtree(path, ignore_errors=True)
+
+
+def podman_inspect(image: str) -> dict[str, object]:
+    out = subprocess.run([tool("podman"), "image", "inspect", image], check=True, capture_output=True, text=True).stdout
+    found: dict[str, object] = json.loads(out)[0]
+    return found
+
+
+def test_the_bare_image_is_small_non_root_and_runs_prac_serve(images: dict[str, str]) -> None:
+    bare = podman_inspect(images["bare"])
+    size = bare["Size"]
+    assert isinstance(size, int)
+    print(f"{images['bare']}: {size / 1e6:.1f} MB; {images['bundles']}: {podman_inspect(images['bundles'])['Size'] / 1e6:.1f} MB")  # type: ignore[operator]
+    assert size <= MAX_BARE_IMAGE_BYTES, f"{size} bytes"
+    config = bare["Config"]
+    assert isinstance(config, dict)
+    assert config["User"] == "65532:65532"
+    assert config["Entrypoint"][:2] == ["/usr/local/bin/prac", "serve"]
+    entry = " ".join(config["Entrypoint"])
+    for flag in ("--listen 0.0.0.0:50051", "--metrics-listen 0.0.0.0:9090", "--bundles /bundles", "--health-listen 0.0.0.0:8081"):
+        assert flag in entry, entry
+    # Serving only: the training and picture subcommands are not in it.
+    help_text = subprocess.run(
+        [tool("podman"), "run", "--rm", "--read-only", "--entrypoint", "/usr/local/bin/prac", images["bare"], "--help"],
+        check=True, capture_output=True, text=True,
+    ).stdout
+    commands = set(re.findall(r"^  ([a-z-]+) ", help_text, re.MULTILINE))
+    assert {"serve", "copy-bundles", "sleep"} <= commands, commands
+    assert not commands & {"train", "fit-model", "bench-train", "render"}, commands
+
+
+def test_a_locked_down_container_serves_health_reflection_and_a_session(images: dict[str, str], containers: list[Container]) -> None:
+    c = Container(images["bundles"])
+    containers.append(c)
+    wait_health(c.health_address, "prac.v1.Prac", SERVING)
+    # Health on both ports: the plaintext probe port and the main one.
+    for address in (c.health_address, c.address):
+        for service in ("", "prac.v1.Prac", "liveness"):
+            assert health(address, service) == SERVING, (address, service)
+    # The probe port answers grpc.health.v1 alone.
+    with grpc.insecure_channel(c.health_address) as channel:
+        with pytest.raises(grpc.RpcError) as refused:
+            pb_grpc.PracStub(channel).ListPolicies(pb.ListPoliciesRequest(), timeout=5)
+        assert refused.value.code() == grpc.StatusCode.UNIMPLEMENTED
+    with grpc.insecure_channel(c.address) as channel:
+        services = set(ProtoReflectionDescriptorDatabase(channel).get_services())
+        assert {"prac.v1.Prac", "grpc.health.v1.Health"} <= services, services
+    with Client(c.address, timeout=10) as client:
+        assert {p.name for p in client.policies()} == {p.stem for p in SHIPPED.glob("*.safetensors")}
+        with client.session("pendulum", epsilon_coef=0.01) as session:
+            rng = np.random.default_rng(0)
+            for t in range(20):
+                angle = rng.uniform(-np.pi, np.pi)
+                result = session.step([np.cos(angle), np.sin(angle), rng.uniform(-1, 1)], new_episode=t == 0)
+                assert result.step == t and result.action.shape == (1,)
+                assert len(result.forecast_actions) >= 1
+    metrics = urllib.request.urlopen(f"http://127.0.0.1:{c.metrics_port}/metrics", timeout=5).read().decode()
+    assert "prac_serving 1" in metrics and 'prac_steps_total{policy="pendulum"} 20' in metrics, metrics
+    assert c.running()
+
+
+def test_sighup_picks_up_a_changed_bundle(images: dict[str, str], containers: list[Container], bundle_dir: pathlib.Path) -> None:
+    shutil.copy(SHIPPED / "pendulum.safetensors", bundle_dir / "pendulum.safetensors")
+    (bundle_dir / "pendulum.safetensors").chmod(0o644)
+    c = Container(images["bare"], volumes=(f"{bundle_dir}:/bundles:ro",))
+    containers.append(c)
+    wait_health(c.health_address, "prac.v1.Prac", SERVING)
+    with Client(c.address, timeout=10) as client:
+        assert [(p.name, p.obs_dim) for p in client.policies()] == [("pendulum", 3)]
+        # A new version of the bundle (here the Lander's policy under the same name), renamed
+        # into place, and one more bundle.
+        partial = bundle_dir / ".pendulum.partial"
+        shutil.copy(SHIPPED / "lander.safetensors", partial)
+        partial.chmod(0o644)
+        partial.rename(bundle_dir / "pendulum.safetensors")
+        shutil.copy(SHIPPED / "hopper.safetensors", bundle_dir / "hopper.safetensors")
+        (bundle_dir / "hopper.safetensors").chmod(0o644)
+        c.signal("HUP")
+        deadline = time.monotonic() + 20
+        while sorted((p.name, p.obs_dim) for p in client.policies()) != [("hopper", 15), ("pendulum", 8)]:
+            assert time.monotonic() < deadline, client.policies()
+            time.sleep(0.1)
+    assert c.running(), c.logs()
+    assert "reloaded bundles" in c.logs()
+
+
+def test_podman_stop_drains_open_streams_with_unavailable_within_the_grace_period(images: dict[str, str], containers: list[Container]) -> None:
+    c = Container(images["bundles"])
+    containers.append(c)
+    wait_health(c.health_address, "prac.v1.Prac", SERVING)
+    grace = 20
+    with grpc.insecure_channel(c.address) as channel:
+        stub = pb_grpc.PracStub(channel)
+        session = stub.OpenSession(pb.OpenSessionRequest(policy="pendulum"), timeout=10).session_id
+        requests: list[pb.StepRequest] = [pb.StepRequest(session_id=session, observation=[1.0, 0.0, 0.0], new_episode=True)]
+        more = threading.Event()
+
+        def send() -> Iterator[pb.StepRequest]:
+            yield requests[0]
+            more.wait(60)
+
+        responses = stub.StepStream(send(), timeout=60)
+        assert next(responses).step == 0
+        took: list[float] = []
+        stopper = threading.Thread(target=lambda: took.append(c.stop(grace)))
+        stopper.start()
+        with pytest.raises(grpc.RpcError) as ended:
+            next(responses)
+        more.set()
+        stopper.join(grace + 10)
+    assert ended.value.code() == grpc.StatusCode.UNAVAILABLE, ended.value
+    print(f"podman stop took {took[0]:.2f} s (grace {grace} s)")
+    assert took[0] < grace, took
+    assert c.state() == ("exited", 0), c.logs()
+    assert "shutdown requested: draining" in c.logs()
+
+
+def test_an_empty_bundle_volume_stays_up_and_not_serving(images: dict[str, str], containers: list[Container], bundle_dir: pathlib.Path) -> None:
+    c = Container(images["bare"], volumes=(f"{bundle_dir}:/bundles:ro",))
+    containers.append(c)
+    wait_health(c.health_address, "liveness", SERVING)
+    time.sleep(2)
+    assert c.running(), c.logs()
+    assert health(c.health_address, "prac.v1.Prac") == NOT_SERVING
+    assert health(c.health_address, "liveness") == SERVING
+    assert "no bundles loaded" in c.logs(), c.logs()
+
+
+def test_an_unreadable_bundle_volume_stays_up_and_not_serving(images: dict[str, str], containers: list[Container], bundle_dir: pathlib.Path) -> None:
+    shutil.copy(SHIPPED / "pendulum.safetensors", bundle_dir / "pendulum.safetensors")
+    bundle_dir.chmod(0o700)
+    c = Container(images["bare"], volumes=(f"{bundle_dir}:/bundles:ro",))
+    containers.append(c)
+    wait_health(c.health_address, "liveness", SERVING)
+    time.sleep(2)
+    assert c.running(), c.logs()
+    assert health(c.health_address, "prac.v1.Prac") == NOT_SERVING
+    assert "cannot read bundle directory" in c.logs(), c.logs()
+
+
+def test_a_bad_config_file_exits_naming_the_key(images: dict[str, str], containers: list[Container], bundle_dir: pathlib.Path) -> None:
+    config = bundle_dir / "prac.toml"
+    config.write_text('max_sessions = "many"\n')
+    config.chmod(0o644)
+    c = Container(images["bundles"], volumes=(f"{config}:/etc/prac/prac.toml:ro",), wait_listening=False)
+    containers.append(c)
+    assert c.wait_exit() != 0
+    assert "max_sessions" in c.logs(), c.logs()
+
+
+def test_health_listen_on_the_main_port_is_refused(images: dict[str, str], containers: list[Container]) -> None:
+    c = Container(
+        images["bundles"],
+        *("serve", "--listen", "0.0.0.0:50051", "--health-listen", "0.0.0.0:50051", "--bundles", "/bundles"),
+        entrypoint="/usr/local/bin/prac",
+        wait_listening=False,
+    )
+    containers.append(c)
+    assert c.wait_exit() != 0
+    assert "health" in c.logs() and "50051" in c.logs(), c.logs()
+
+
+def test_a_container_killed_mid_episode_behind_the_affinity_proxy_loses_no_step(
+    images: dict[str, str], containers: list[Container], tmp_path: pathlib.Path
+) -> None:
+    """Two containers behind deploy/nginx (a ring of two, hashed on x-prac-affinity, as
+    deploy/k8s/overlays/envoy hashes it): the one holding the robot's session is killed
+    mid-episode, the client resumes on the other from the plan it holds, the steps go on."""
+    from test_resume import KILL_AT, play_sync, start_nginx
+
+    tool("nginx")
+    replicas = [Container(images["bundles"]), Container(images["bundles"])]
+    containers.extend(replicas)
+    for r in replicas:
+        wait_health(r.health_address, "prac.v1.Prac", SERVING)
+    prefix = tmp_path / "nginx"
+    prefix.mkdir()
+    listen = f"127.0.0.1:{free_port()}"
+    nginx = start_nginx(prefix, listen, [r.address for r in replicas])
+    killed: list[int] = []
+    kill_times: list[float] = []
+
+    def holder(session_id: str) -> int:
+        for k, r in enumerate(replicas):
+            with grpc.insecure_channel(r.address) as channel:
+                try:
+                    pb_grpc.PracStub(channel).GetPlan(pb.GetPlanRequest(session_id=session_id), timeout=5)
+                    return k
+                except grpc.RpcError as e:
+                    assert e.code() == grpc.StatusCode.NOT_FOUND, e
+        raise AssertionError("no replica holds the session")
+
+    def kill_holder(session_id: str) -> None:
+        owner = holder(session_id)
+        replicas[owner].signal("KILL")
+        killed.append(owner)
+        kill_times.append(time.monotonic())
+
+    try:
+        results, resumes, final_id, answered_at = play_sync(listen, kill_holder)
+    finally:
+        nginx.terminate()
+        nginx.wait(10)
+    assert resumes == 1
+    print(f"container killed: step {KILL_AT} answered {answered_at[0] - kill_times[0]:.3f} s after the kill")
+    for t, r in enumerate(results):
+        assert (r.step, r.episode) == (t, 0)
+        if t > 0:
+            np.testing.assert_allclose(r.action, results[t - 1].forecast_actions[1], atol=1e-5)
+    survivor = replicas[1 - killed[0]]
+    with grpc.insecure_channel(survivor.address) as channel:
+        plan = pb_grpc.PracStub(channel).GetPlan(pb.GetPlanRequest(session_id=final_id), timeout=5)
+    assert plan.start_step == len(results) - 1
