@@ -1,6 +1,6 @@
-//! Prometheus metrics over HTTP: steps, latency histogram, open sessions, plan breaks, forecast
-//! length, where steps were replanned and errors by status code, read from a real server's
-//! /metrics.
+//! Prometheus metrics over HTTP: steps, latency histogram, open sessions and their limit, plan
+//! breaks, forecast length, f_t, where steps were replanned, errors by status code, readiness and
+//! the version, read from a real server's /metrics.
 
 use crate::common;
 
@@ -49,21 +49,24 @@ async fn with_metrics(bundles: &std::path::Path, args: &[&str]) -> (Server, Stri
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn metrics_count_steps_sessions_and_errors() {
     let bundles = bundle_dir();
-    let (server, addr) = with_metrics(bundles.path(), &[]).await;
+    let (server, addr) = with_metrics(bundles.path(), &["--max-sessions", "7"]).await;
     let mut client = server.client().await;
     let mut ids = Vec::new();
     for _ in 0..2 {
         ids.push(common::open_default_session(&mut client, "toy").await);
     }
+    let mut f_t = Vec::new();
     for k in 0..5 {
-        client
+        let answer = client
             .step(proto::StepRequest {
                 session_id: ids[0].clone(),
                 observation: vec![0.1 * k as f32; OBS],
                 new_episode: k == 0,
             })
             .await
-            .unwrap();
+            .unwrap()
+            .into_inner();
+        f_t.push(answer.f_t as f64);
     }
     client
         .close_session(proto::CloseSessionRequest {
@@ -110,7 +113,16 @@ async fn metrics_count_steps_sessions_and_errors() {
     let forecast_sum = sample(&text, "prac_forecast_length_sum");
     assert!((5.0..=5.0 * 6.0).contains(&forecast_sum), "{forecast_sum}");
     assert!(sample(&text, "prac_plan_breaks_total") <= 4.0);
+    assert_eq!(sample(&text, "prac_f_t_count"), 5.0);
+    assert_eq!(sample(&text, "prac_f_t_sum"), f_t.iter().sum::<f64>());
     assert_eq!(sample(&text, "prac_open_sessions"), 1.0);
+    assert_eq!(sample(&text, "prac_max_sessions"), 7.0);
+    assert_eq!(sample(&text, "prac_serving"), 1.0);
+    let version = format!(
+        "prac_build_info{{version=\"{}\"}}",
+        env!("CARGO_PKG_VERSION")
+    );
+    assert_eq!(sample(&text, &version), 1.0);
     assert_eq!(sample(&text, "prac_sessions_opened_total"), 2.0);
     assert_eq!(
         sample(&text, "prac_errors_total{code=\"InvalidArgument\"}"),
@@ -121,6 +133,28 @@ async fn metrics_count_steps_sessions_and_errors() {
     // One session's steps never overlap: each is replanned alone, in its handler.
     assert_eq!(sample(&text, "prac_replanned_total{by=\"handler\"}"), 5.0);
     assert!(!text.contains("prac_replanned_total{by=\"batch_worker\"}"));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn readiness_is_zero_while_no_bundle_is_loaded_and_one_once_one_is() {
+    let empty = tempfile::tempdir().unwrap();
+    let server = Server::start(empty.path(), &["--metrics-listen", "127.0.0.1:0"]);
+    let addr = server
+        .preamble
+        .iter()
+        .find_map(|l| l.strip_prefix("metrics on "))
+        .expect("the metrics address")
+        .to_string();
+    assert_eq!(sample(&scrape(&addr), "prac_serving"), 0.0);
+    // A bundle arrives and SIGHUP loads it.
+    let bundles = bundle_dir();
+    for entry in std::fs::read_dir(bundles.path()).unwrap() {
+        let path = entry.unwrap().path();
+        std::fs::copy(&path, empty.path().join(path.file_name().unwrap())).unwrap();
+    }
+    server.signal("HUP");
+    server.wait_serving().await;
+    assert_eq!(sample(&scrape(&addr), "prac_serving"), 1.0);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

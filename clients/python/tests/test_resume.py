@@ -288,12 +288,18 @@ def test_a_replica_killed_behind_nginx_loses_no_step(flavour: str, tmp_path: pat
         nginx.wait(10)
     assert resumes == 1
     print(f"{flavour} behind nginx: step {KILL_AT} answered {answered_at[0] - kill_times[0]:.3f} s after the kill")
+    assert_contiguous(results)
+    survivor = 1 - killed[0]
+    assert holder(replicas[survivor : survivor + 1], final_id) == 0
+
+
+def assert_contiguous(results: list[StepResult]) -> None:
+    """One episode's steps 0, 1, ... in order, each executing the action the step before it
+    committed for it."""
     for t, r in enumerate(results):
         assert (r.step, r.episode) == (t, 0)
         if t > 0:
             np.testing.assert_allclose(r.action, results[t - 1].forecast_actions[1], atol=1e-5)
-    survivor = 1 - killed[0]
-    assert holder(replicas[survivor : survivor + 1], final_id) == 0
 
 
 def play_sync(listen: str, kill_holder: Callable[[str], None]) -> tuple[list[StepResult], int, str, list[float]]:
