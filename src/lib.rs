@@ -13,7 +13,6 @@
 //! - [`train`]: SAC + dynamics model training (Algorithm 1) with burn (feature `train`).
 //! - [`render`]: pictures of domains and plans, and charts with plotters (feature `render`).
 //! - [`client`]: connecting, waiting for a server's policies, a local server, resuming sessions.
-//! - [`cli`]: the `prac` subcommands other than `serve`.
 //!
 //! The features `train` and `render` (both default) carry the heavy dependencies, burn and
 //! plotters; a client that only talks to the server or plays the domains (prac-bench) goes
@@ -23,7 +22,6 @@
 #![warn(unreachable_pub)]
 
 pub mod bundle;
-pub mod cli;
 pub mod client;
 pub mod domains;
 pub mod env_rpc;

@@ -1,14 +1,49 @@
 //! `prac evaluate FILE`: a bundle's deterministic policy against uniformly random actions on its
 //! domain, the figures the shipped bundles' task criteria (docs/results.md) are judged on.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
+use anyhow::Context;
+use clap::Args;
 use serde::Serialize;
 
-use crate::bundle;
-use crate::domains;
-use crate::eval::{Episode, mean_std, policy_episodes, random_episodes};
+use prac::bundle;
+use prac::domains;
+use prac::eval::{Episode, mean_std, policy_episodes, random_episodes};
+
+#[derive(Args, Debug)]
+pub struct EvaluateArgs {
+    file: PathBuf,
+    #[arg(long, default_value_t = 50)]
+    episodes: usize,
+    /// First episode's seed (the training runs evaluate from 2^41).
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Print the evaluation as JSON.
+    #[arg(long)]
+    json: bool,
+    /// Also write the evaluation as JSON to this file.
+    #[arg(long)]
+    json_out: Option<PathBuf>,
+}
+
+impl EvaluateArgs {
+    pub fn run(self) -> anyhow::Result<()> {
+        let e = evaluate(&self.file, self.episodes, self.seed)?;
+        if let Some(path) = &self.json_out {
+            std::fs::write(path, serde_json::to_string_pretty(&e)? + "\n")
+                .with_context(|| format!("writing {}", path.display()))?;
+        }
+        let text = if self.json {
+            serde_json::to_string_pretty(&e)? + "\n"
+        } else {
+            report(&e)
+        };
+        print!("{text}");
+        Ok(())
+    }
+}
 
 /// Episodes `seed`, `seed + 1`, ... of one way of acting.
 #[derive(Debug, Serialize)]
@@ -40,15 +75,15 @@ fn summarise(episodes: &[Episode]) -> Played {
         return_mean,
         return_std,
         discounted_mean: mean_std(&of(&|e| e.discounted)).0,
-        terminated: crate::eval::terminated_count(episodes),
+        terminated: prac::eval::terminated_count(episodes),
         steps_mean: mean_std(&of(&|e| e.len as f64)).0,
-        distance_mean: crate::eval::mean_distance(episodes),
+        distance_mean: prac::eval::mean_distance(episodes),
     }
 }
 
 /// Plays `episodes` episodes of the bundle's deterministic policy and as many of random actions,
 /// from the same start seeds.
-pub fn run(path: &Path, episodes: usize, seed: u64) -> anyhow::Result<Evaluation> {
+fn evaluate(path: &Path, episodes: usize, seed: u64) -> anyhow::Result<Evaluation> {
     anyhow::ensure!(episodes > 0, "--episodes must be at least 1");
     let policy = Arc::new(bundle::load(path)?);
     let domain = policy.manifest.domain.clone();
@@ -68,7 +103,7 @@ pub fn run(path: &Path, episodes: usize, seed: u64) -> anyhow::Result<Evaluation
 }
 
 /// The evaluation as a few lines of text.
-pub fn report(e: &Evaluation) -> String {
+fn report(e: &Evaluation) -> String {
     let line = |name: &str, p: &Played| {
         let distance = p
             .distance_mean
@@ -125,11 +160,11 @@ mod tests {
     fn evaluating_no_episodes_or_a_missing_bundle_is_an_error() {
         let missing = Path::new("/nonexistent/hopper.safetensors");
         assert!(
-            run(missing, 0, 0)
+            evaluate(missing, 0, 0)
                 .unwrap_err()
                 .to_string()
                 .contains("--episodes")
         );
-        assert!(run(missing, 1, 0).is_err());
+        assert!(evaluate(missing, 1, 0).is_err());
     }
 }

@@ -1,15 +1,32 @@
 //! `prac inspect FILE [--json]`: the manifest of a bundle and one forward pass.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
+
+use clap::Args;
 use std::sync::Arc;
 
-use crate::bundle;
-use crate::plan::Networks;
-use crate::policy::Evaluator;
+use prac::bundle;
+use prac::plan::Networks;
+use prac::policy::Evaluator;
+
+#[derive(Args, Debug)]
+pub struct InspectArgs {
+    file: PathBuf,
+    /// Print only the manifest, as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+impl InspectArgs {
+    pub fn run(self) -> anyhow::Result<()> {
+        print!("{}", describe(&self.file, self.json)?);
+        Ok(())
+    }
+}
 
 /// Loads the bundle (with full validation) and describes it; with `json`, prints only the
 /// manifest as JSON.
-pub fn run(path: &Path, json: bool) -> anyhow::Result<String> {
+fn describe(path: &Path, json: bool) -> anyhow::Result<String> {
     let policy = Arc::new(bundle::load(path)?);
     let m = &policy.manifest;
     if json {

@@ -1,30 +1,74 @@
 //! `prac render`: a picture of a domain, optionally with a policy's imagined plan overlaid.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use anyhow::{Context, bail};
+use clap::Args;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::domains;
-use crate::plan::{Planner, ReplanConfig};
-use crate::policy::Evaluator;
-use crate::render::Forecast;
+use prac::domains;
+use prac::plan::{Planner, ReplanConfig};
+use prac::policy::Evaluator;
+use prac::render::Forecast;
 
-pub struct RenderRequest<'a> {
-    pub domain: &'a str,
-    pub seed: u64,
-    pub out: &'a Path,
+#[derive(Args, Debug)]
+pub struct RenderArgs {
+    domain: String,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    #[arg(long)]
+    out: PathBuf,
+    /// Steps played before drawing (the policy's, else random actions).
+    #[arg(long, default_value_t = 0)]
+    steps: u32,
+    /// A bundle whose PrAC plan is drawn (predicted states as dots).
+    #[arg(long)]
+    policy: Option<PathBuf>,
+    /// eps coefficient of the drawn plan's session (eps = C x (V_pi - V_rand)); needs
+    /// --policy [default: 0, as prac-sim's].
+    #[arg(long, requires = "policy", default_value_t = 0.0)]
+    epsilon_coef: f64,
+    #[arg(long, default_value_t = 800)]
+    width: u32,
+    /// Picture height; with --policy the lower third shows the committed actions.
+    #[arg(long, default_value_t = 640)]
+    height: u32,
+}
+
+impl RenderArgs {
+    pub fn run(self) -> anyhow::Result<()> {
+        let drawn = render(&RenderRequest {
+            domain: &self.domain,
+            seed: self.seed,
+            out: &self.out,
+            steps: self.steps,
+            policy: self.policy.as_deref(),
+            epsilon_coef: self.epsilon_coef,
+            size: (self.width.clamp(64, 4096), self.height.clamp(64, 4096)),
+        })?;
+        println!(
+            "wrote {} ({drawn} planned states drawn)",
+            self.out.display()
+        );
+        Ok(())
+    }
+}
+
+struct RenderRequest<'a> {
+    domain: &'a str,
+    seed: u64,
+    out: &'a Path,
     /// Steps played before drawing: the policy's (PrAC) actions, else uniform random ones.
-    pub steps: u32,
-    pub policy: Option<&'a Path>,
-    pub epsilon_coef: f64,
-    pub size: (u32, u32),
+    steps: u32,
+    policy: Option<&'a Path>,
+    epsilon_coef: f64,
+    size: (u32, u32),
 }
 
 /// Renders the request; returns the plan length drawn.
-pub fn run(req: &RenderRequest<'_>) -> anyhow::Result<usize> {
+fn render(req: &RenderRequest<'_>) -> anyhow::Result<usize> {
     let Some(mut env) = domains::make(req.domain) else {
         bail!(
             "unknown domain '{}'; known: {}",
@@ -38,7 +82,7 @@ pub fn run(req: &RenderRequest<'_>) -> anyhow::Result<usize> {
     let mut title = format!("{} | seed {}", req.domain, req.seed);
     let mut committed = None;
     if let Some(path) = req.policy {
-        let policy = Arc::new(crate::bundle::load(path)?);
+        let policy = Arc::new(prac::bundle::load(path)?);
         if policy.manifest.domain != req.domain {
             bail!(
                 "{}: policy is for domain '{}', not '{}'",
@@ -120,6 +164,6 @@ pub fn run(req: &RenderRequest<'_>) -> anyhow::Result<usize> {
             step: u64::from(req.steps),
             action_range: spec.action_range(),
         });
-    crate::render::render_scene(&env.scene(), forecast.as_ref(), &title, req.out, req.size)?;
+    prac::render::render_scene(&env.scene(), forecast.as_ref(), &title, req.out, req.size)?;
     Ok(committed.map_or(0, |(trace, _, _)| trace.len()))
 }

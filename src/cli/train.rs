@@ -1,16 +1,14 @@
-//! `prac train` and `prac fit-model`.
+//! `prac train`: SAC with a dynamics model (Algorithm 1), with or without PrAC while training.
 
 use std::path::PathBuf;
 
-use anyhow::Context;
 use clap::Args;
 
-use crate::domains::Env;
-use crate::env_rpc::RemoteEnv;
-use crate::train::fit::{FitOptions, Transitions, fit_model};
-use crate::train::options::TrainOptions;
-use crate::train::run::Trainer;
-use crate::train::sac::SacConfig;
+use prac::domains::Env;
+use prac::env_rpc::RemoteEnv;
+use prac::train::options::TrainOptions;
+use prac::train::run::Trainer;
+use prac::train::sac::SacConfig;
 
 #[derive(Args, Debug)]
 pub struct TrainArgs {
@@ -38,7 +36,7 @@ pub struct TrainArgs {
     #[arg(long, value_name = "V_PI,V_RAND", allow_hyphen_values = true)]
     pub value_scale: Option<String>,
     /// Longest plan while training with PrAC.
-    #[arg(long, default_value_t = crate::plan::DEFAULT_MAX_HORIZON)]
+    #[arg(long, default_value_t = prac::plan::DEFAULT_MAX_HORIZON)]
     pub max_horizon: usize,
     /// The bundle to write.
     #[arg(long)]
@@ -123,116 +121,68 @@ fn apply_overrides(config: &mut SacConfig, a: &TrainArgs) {
     config.critic_layer_norm |= a.critic_layer_norm;
 }
 
-pub fn train(args: TrainArgs) -> anyhow::Result<()> {
-    let served = match &args.env_server {
-        // Two worlds: one to train in, one to evaluate in.
-        Some(addr) => Some((
-            RemoteEnv::connect(addr, args.seed)?,
-            RemoteEnv::connect(addr, args.seed.wrapping_add(1))?,
-        )),
-        None => None,
-    };
-    let domain = match (&served, &args.domain) {
-        (Some((env, _)), _) => env.spec().name.to_string(),
-        (None, Some(domain)) => domain.clone(),
-        (None, None) => anyhow::bail!("give --domain or --env-server"),
-    };
-    let mut options = TrainOptions::new(&domain, &args.out);
-    options.steps = args.steps;
-    options.seed = args.seed;
-    options.epsilon_coef = args.epsilon_coef;
-    options.max_horizon = args.max_horizon;
-    options.value_scale = args
-        .value_scale
-        .as_deref()
-        .map(|text| super::parse_number_pair(text, "--value-scale V_PI,V_RAND"))
-        .transpose()?;
-    if let Some(csv) = &args.csv {
-        options.csv = csv.clone();
-        options.eval_csv = csv.with_extension("eval.csv");
-    }
-    if let Some(dir) = &args.checkpoint_dir {
-        options.checkpoint_dir = dir.clone();
-    }
-    options.checkpoint_every = args.checkpoint_every.into();
-    options.checkpoint_replay = !args.no_checkpoint_replay;
-    options.eval_every = args.eval_every;
-    options.eval_episodes = args.eval_episodes;
-    options.value_episodes = args.value_episodes;
-    options.progress = !args.quiet;
-    apply_overrides(&mut options.sac, &args);
-    let mut trainer = match served {
-        Some((env, eval_env)) => {
-            Trainer::with_envs(options, args.resume, Box::new(env), Box::new(eval_env))?
+impl TrainArgs {
+    pub fn run(self) -> anyhow::Result<()> {
+        let args = self;
+        let served = match &args.env_server {
+            // Two worlds: one to train in, one to evaluate in.
+            Some(addr) => Some((
+                RemoteEnv::connect(addr, args.seed)?,
+                RemoteEnv::connect(addr, args.seed.wrapping_add(1))?,
+            )),
+            None => None,
+        };
+        let domain = match (&served, &args.domain) {
+            (Some((env, _)), _) => env.spec().name.to_string(),
+            (None, Some(domain)) => domain.clone(),
+            (None, None) => anyhow::bail!("give --domain or --env-server"),
+        };
+        let mut options = TrainOptions::new(&domain, &args.out);
+        options.steps = args.steps;
+        options.seed = args.seed;
+        options.epsilon_coef = args.epsilon_coef;
+        options.max_horizon = args.max_horizon;
+        options.value_scale = args
+            .value_scale
+            .as_deref()
+            .map(|text| prac::client::parse_number_pair(text, "--value-scale V_PI,V_RAND"))
+            .transpose()?;
+        if let Some(csv) = &args.csv {
+            options.csv = csv.clone();
+            options.eval_csv = csv.with_extension("eval.csv");
         }
-        None => Trainer::new(options, args.resume)?,
-    };
-    if args.resume {
-        eprintln!(
-            "resuming at step {} (episode {})",
-            trainer.progress.step, trainer.progress.episode
-        );
-        match trainer.restored_transitions {
-            Some(n) => eprintln!("restored {n} transitions from the checkpoint's replay buffer"),
-            None => eprintln!(
-                "the checkpoint has no replay buffer: refilling it before learning goes on"
-            ),
+        if let Some(dir) = &args.checkpoint_dir {
+            options.checkpoint_dir = dir.clone();
         }
+        options.checkpoint_every = args.checkpoint_every.into();
+        options.checkpoint_replay = !args.no_checkpoint_replay;
+        options.eval_every = args.eval_every;
+        options.eval_episodes = args.eval_episodes;
+        options.value_episodes = args.value_episodes;
+        options.progress = !args.quiet;
+        apply_overrides(&mut options.sac, &args);
+        let mut trainer = match served {
+            Some((env, eval_env)) => {
+                Trainer::with_envs(options, args.resume, Box::new(env), Box::new(eval_env))?
+            }
+            None => Trainer::new(options, args.resume)?,
+        };
+        if args.resume {
+            eprintln!(
+                "resuming at step {} (episode {})",
+                trainer.progress.step, trainer.progress.episode
+            );
+            match trainer.restored_transitions {
+                Some(n) => {
+                    eprintln!("restored {n} transitions from the checkpoint's replay buffer")
+                }
+                None => eprintln!(
+                    "the checkpoint has no replay buffer: refilling it before learning goes on"
+                ),
+            }
+        }
+        let report = trainer.run()?;
+        println!("{}", serde_json::to_string_pretty(&report)?);
+        Ok(())
     }
-    let report = trainer.run()?;
-    println!("{}", serde_json::to_string_pretty(&report)?);
-    Ok(())
-}
-
-#[derive(Args, Debug)]
-pub struct FitArgs {
-    /// The bundle whose model is (re)trained.
-    #[arg(long)]
-    pub bundle: PathBuf,
-    /// safetensors with f32 arrays obs [N, obs_dim], action [N, act_dim] (domain units) and
-    /// next_obs [N, obs_dim]; consecutive rows form episodes for the k-step error.
-    #[arg(long)]
-    pub transitions: PathBuf,
-    /// Where to write the bundle [default: replace --bundle].
-    #[arg(long)]
-    pub out: Option<PathBuf>,
-    /// Gradient steps.
-    #[arg(long, default_value_t = 20_000)]
-    pub steps: usize,
-    #[arg(long, default_value_t = 256)]
-    pub batch_size: usize,
-    #[arg(long, default_value_t = 1e-4)]
-    pub learning_rate: f64,
-    /// Fraction of rows (the last ones) held out for the error report.
-    #[arg(long, default_value_t = 0.1)]
-    pub holdout: f64,
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
-}
-
-pub fn fit(args: FitArgs) -> anyhow::Result<()> {
-    anyhow::ensure!(
-        args.holdout > 0.0 && args.holdout < 1.0,
-        "--holdout must be in (0, 1)"
-    );
-    anyhow::ensure!(args.batch_size > 0, "--batch-size must be > 0");
-    let policy = crate::bundle::load(&args.bundle)?;
-    let data = Transitions::load(&args.transitions, policy.obs_dim(), policy.act_dim())?;
-    let options = FitOptions {
-        steps: args.steps,
-        batch_size: args.batch_size,
-        learning_rate: args.learning_rate,
-        holdout: args.holdout,
-        seed: args.seed,
-        ..FitOptions::default()
-    };
-    // The output's folder before the fit, as `prac train` makes its --out's: a fit is minutes.
-    let out = args.out.unwrap_or(args.bundle);
-    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    }
-    let (fitted, report) = fit_model(&policy, &data, &options)?;
-    crate::bundle::save(&fitted, &out).with_context(|| format!("writing {}", out.display()))?;
-    println!("{}", serde_json::to_string_pretty(&report)?);
-    Ok(())
 }

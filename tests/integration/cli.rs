@@ -1,5 +1,6 @@
 //! `prac inspect` on bundles written by test code, `prac evaluate` on a shipped one,
-//! `prac bench-replan --bundle` and `prac play-from-states` on PyBullet's states.
+//! `prac bench-replan --bundle` and `prac play-from-states` on PyBullet's states, and the README's
+//! command table against the binary's own help.
 
 use crate::common;
 
@@ -343,4 +344,62 @@ fn play_from_states_plays_pybullets_states_and_refuses_bad_ones() {
     assert!(!refused.status.success());
     let stderr = String::from_utf8(refused.stderr).unwrap();
     assert!(stderr.contains("joint angles"), "{stderr}");
+}
+
+/// The README's command table names every subcommand clap knows and, in its row, every flag of
+/// it, so the documented interface cannot drift from the binary's.
+#[test]
+fn the_readme_lists_every_subcommand_and_every_flag() {
+    let readme =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md")).unwrap();
+    // A row's first cell, up to its first unescaped `|`.
+    let first_cell = |row: &str| -> String {
+        let mut cell = String::new();
+        let mut escaped = false;
+        for c in row.trim_start_matches('|').chars() {
+            if c == '|' && !escaped {
+                break;
+            }
+            escaped = c == '\\';
+            cell.push(c);
+        }
+        cell
+    };
+    let help = |args: &[&str]| String::from_utf8(prac(args).stdout).unwrap();
+    let top = help(&["--help"]);
+    let commands: Vec<&str> = top
+        .split("Commands:")
+        .nth(1)
+        .and_then(|rest| rest.split("Options:").next())
+        .unwrap()
+        .lines()
+        .filter_map(|l| l.strip_prefix("  ")?.split_whitespace().next())
+        .filter(|c| *c != "help")
+        .collect();
+    assert!(commands.len() >= 14, "{commands:?}");
+    let mut missing = Vec::new();
+    for command in &commands {
+        let prefix = format!("| `prac {command}");
+        let Some(row) = readme.lines().find(|l| {
+            l.strip_prefix(&prefix)
+                .is_some_and(|rest| rest.starts_with(' ') || rest.starts_with('`'))
+        }) else {
+            missing.push(format!("no row for `prac {command}`"));
+            continue;
+        };
+        let cell = first_cell(row);
+        for line in help(&[command, "--help"]).lines() {
+            let flag = line.trim_start().trim_start_matches("-h, ");
+            let Some(flag) = flag
+                .strip_prefix("--")
+                .map(|f| f.split([' ', '=', '<']).next().unwrap_or(""))
+            else {
+                continue;
+            };
+            if !flag.is_empty() && flag != "help" && !cell.contains(&format!("--{flag}")) {
+                missing.push(format!("`prac {command}` row lacks --{flag}"));
+            }
+        }
+    }
+    assert!(missing.is_empty(), "{}", missing.join("\n"));
 }

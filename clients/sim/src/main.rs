@@ -155,7 +155,7 @@ pub fn progress(total: u64, show: bool) -> indicatif::ProgressBar {
 }
 
 fn parse_pair(text: &str) -> anyhow::Result<(f64, f64)> {
-    let (a, b) = prac::cli::parse_number_pair(text, "A,B")?;
+    let (a, b) = prac::client::parse_number_pair(text, "A,B")?;
     anyhow::ensure!(a != b, "expected two different numbers A,B, got '{text}'");
     Ok((a, b))
 }

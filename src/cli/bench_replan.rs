@@ -1,16 +1,60 @@
 //! `prac bench-replan`: microseconds per Replan for Hopper-sized networks and the GFLOP/s reached.
 
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use clap::Args;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use crate::plan::{
+use prac::plan::{
     Growth, Networks, NonFinite, Plan, ReplanConfig, ReplanJob, ReplanScratch, replan_batch,
 };
-use crate::policy::Evaluator;
-use crate::testing::hopper_sized_manifest;
+use prac::policy::Evaluator;
+use prac::testing::hopper_sized_manifest;
+
+#[derive(Args, Debug)]
+pub struct BenchReplanArgs {
+    /// Seconds measured per case.
+    #[arg(long, default_value_t = 1.0)]
+    seconds: f64,
+    /// Plan lengths to measure.
+    #[arg(long, value_delimiter = ',', default_value = "1,8,32")]
+    lengths: Vec<usize>,
+    /// Sessions replanned together (cross-session batch sizes).
+    #[arg(long, value_delimiter = ',', default_value = "1,8,64")]
+    batches: Vec<usize>,
+    /// Instead: Replan on these bundles (repeatable), one session in-process on its domain's
+    /// simulated trajectories: microseconds, FLOPs and network calls per step.
+    #[arg(long)]
+    bundle: Vec<PathBuf>,
+    /// eps coefficient of --bundle's session (eps = coef x (V_pi - V_rand)).
+    #[arg(long, default_value_t = 0.005)]
+    epsilon_coef: f64,
+}
+
+impl BenchReplanArgs {
+    pub fn run(self) -> anyhow::Result<()> {
+        let per_case = Duration::from_secs_f64(self.seconds);
+        if !self.bundle.is_empty() {
+            let rows = self
+                .bundle
+                .iter()
+                .map(|path| bundle_replan(path, self.epsilon_coef, per_case))
+                .collect::<anyhow::Result<Vec<_>>>()?;
+            print!("{}", bundle_report(&rows, matmul_gflops(per_case)));
+            return Ok(());
+        }
+        let lengths: Vec<usize> = self.lengths.into_iter().filter(|&l| l > 0).collect();
+        let batches: Vec<usize> = self.batches.into_iter().filter(|&b| b > 0).collect();
+        let rows = lengths_and_batches(&lengths, &batches, per_case);
+        let kernel = kernel(&[1, 8, 64, 256, 1024], per_case);
+        let matmul = matmul_gflops(per_case);
+        print!("{}", report(&rows, &kernel, matmul));
+        Ok(())
+    }
+}
 
 /// Counts network evaluations (rows), to turn time into FLOP/s, and calls.
 struct Counting<N> {
@@ -45,20 +89,20 @@ impl<N: Networks> Networks for Counting<N> {
     }
 }
 
-pub struct BenchRow {
-    pub plan_length: usize,
-    pub batch: usize,
-    pub replans: u64,
-    pub micros_per_replan: f64,
-    pub gflops: f64,
+struct BenchRow {
+    plan_length: usize,
+    batch: usize,
+    replans: u64,
+    micros_per_replan: f64,
+    gflops: f64,
 }
 
 /// Times Replan at each plan length and batch size (sessions replanned together) for
 /// `per_case` wall time. Plans are held whole (eps huge, fixed length): every step checks
 /// length - 1 old actions and appends one, the costliest case. FLOPs are the multiply-adds of
 /// every network evaluation, counted as two each.
-pub fn run(lengths: &[usize], batches: &[usize], per_case: Duration) -> Vec<BenchRow> {
-    let policy = Arc::new(crate::testing::random_policy(hopper_sized_manifest(), 1));
+fn lengths_and_batches(lengths: &[usize], batches: &[usize], per_case: Duration) -> Vec<BenchRow> {
+    let policy = Arc::new(prac::testing::random_policy(hopper_sized_manifest(), 1));
     let (actor_flops, critic_flops, model_flops) = policy.flops();
     let n_critics = policy.critics.len() as u64;
     let (obs_dim, act_dim) = (policy.obs_dim(), policy.act_dim());
@@ -150,7 +194,7 @@ pub fn run(lengths: &[usize], batches: &[usize], per_case: Duration) -> Vec<Benc
 
 /// The machine's single-thread f32 matrix-multiply rate: 512 x 512 x 512 with matrixmultiply
 /// (via nalgebra), the reference for Replan's GFLOP/s.
-pub fn matmul_gflops(per_case: Duration) -> f64 {
+fn matmul_gflops(per_case: Duration) -> f64 {
     let n = 512;
     let a = nalgebra::DMatrix::<f32>::from_fn(n, n, |i, j| ((i * 7 + j) % 13) as f32 * 0.1);
     let b = a.transpose();
@@ -167,37 +211,37 @@ pub fn matmul_gflops(per_case: Duration) -> f64 {
 
 /// Replan on a shipped bundle, on its own domain's trajectories: one session in-process, the
 /// simulated robot driven by the served action, as `prac serve` replans a lone session.
-pub struct BundleReplan {
-    pub bundle: String,
-    pub epsilon_coef: f64,
-    pub steps: u64,
-    pub micros_per_step: f64,
-    pub old_actions_tested_per_step: f64,
-    pub plan_length: f64,
-    pub network_calls_per_step: f64,
-    pub mflop_per_step: f64,
-    pub gflops: f64,
+struct BundleReplan {
+    bundle: String,
+    epsilon_coef: f64,
+    steps: u64,
+    micros_per_step: f64,
+    old_actions_tested_per_step: f64,
+    plan_length: f64,
+    network_calls_per_step: f64,
+    mflop_per_step: f64,
+    gflops: f64,
 }
 
 /// Plays the bundle's domain for `per_case` (episodes restart from the next seed), timing only
 /// Replan.
-pub fn bundle_replan(
+fn bundle_replan(
     path: &std::path::Path,
     epsilon_coef: f64,
     per_case: Duration,
 ) -> anyhow::Result<BundleReplan> {
-    use crate::proto::session_options::Tolerance;
-    use crate::serve::session::SessionSettings;
-    let policy = Arc::new(crate::bundle::load(path)?);
+    use prac::proto::session_options::Tolerance;
+    use prac::serve::SessionSettings;
+    let policy = Arc::new(prac::bundle::load(path)?);
     let domain = policy.manifest.domain.clone();
-    let mut env = crate::domains::make(&domain).ok_or_else(|| {
+    let mut env = prac::domains::make(&domain).ok_or_else(|| {
         anyhow::anyhow!("the bundle is for domain {domain:?}, which this build does not have")
     })?;
-    let options = crate::proto::SessionOptions {
+    let options = prac::proto::SessionOptions {
         tolerance: Some(Tolerance::EpsilonCoef(epsilon_coef)),
         ..Default::default()
     };
-    let config = SessionSettings::resolve(Some(&options), &policy, crate::plan::MAX_CHUNK)
+    let config = SessionSettings::resolve(Some(&options), &policy, prac::plan::MAX_CHUNK)
         .map_err(|e| anyhow::anyhow!(e))?
         .replan;
     let (actor_flops, critic_flops, model_flops) = policy.flops();
@@ -211,7 +255,7 @@ pub fn bundle_replan(
         predicts: 0,
         calls: 0,
     };
-    let mut planner = crate::plan::Planner::new(config, od, ad, ChaCha8Rng::seed_from_u64(1));
+    let mut planner = prac::plan::Planner::new(config, od, ad, ChaCha8Rng::seed_from_u64(1));
     let (mut obs, mut scaled) = (vec![0.0; od], vec![0.0; ad]);
     let (mut seed, mut t) = (0u64, 0u64);
     env.reset(seed, &mut obs)?;
@@ -224,7 +268,7 @@ pub fn bundle_replan(
         steps += 1;
         tested += outcome.kept + usize::from(outcome.broke_at.is_some());
         plan_entries += planner.plan().len();
-        crate::policy::unscale_action(
+        prac::policy::unscale_action(
             &spec.action_low,
             &spec.action_high,
             planner.plan().action(0),
@@ -254,7 +298,7 @@ pub fn bundle_replan(
     })
 }
 
-pub fn bundle_report(rows: &[BundleReplan], matmul: f64) -> String {
+fn bundle_report(rows: &[BundleReplan], matmul: f64) -> String {
     let mut out = format!(
         "Replan on shipped bundles, one session in-process on its domain's trajectories\n\
          machine matmul (512^3 sgemm, matrixmultiply, 1 thread): {matmul:.1} GFLOP/s\n\
@@ -283,15 +327,15 @@ pub fn bundle_report(rows: &[BundleReplan], matmul: f64) -> String {
 
 /// The MLP kernel alone: one Hopper-sized critic (18 inputs, [256, 256] ReLU, 1 output) over
 /// `rows` states at a time.
-pub struct KernelRow {
-    pub rows: usize,
-    pub micros_per_call: f64,
-    pub gflops: f64,
+struct KernelRow {
+    rows: usize,
+    micros_per_call: f64,
+    gflops: f64,
 }
 
 /// Times the critic's forward at each batch size for `per_case` wall time.
-pub fn kernel(batch_rows: &[usize], per_case: Duration) -> Vec<KernelRow> {
-    let policy = crate::testing::random_policy(hopper_sized_manifest(), 3);
+fn kernel(batch_rows: &[usize], per_case: Duration) -> Vec<KernelRow> {
+    let policy = prac::testing::random_policy(hopper_sized_manifest(), 3);
     let critic = &policy.critics[0];
     let mut scratch = critic.scratch();
     batch_rows
@@ -319,7 +363,7 @@ pub fn kernel(batch_rows: &[usize], per_case: Duration) -> Vec<KernelRow> {
         .collect()
 }
 
-pub fn report(rows: &[BenchRow], kernel: &[KernelRow], matmul: f64) -> String {
+fn report(rows: &[BenchRow], kernel: &[KernelRow], matmul: f64) -> String {
     let mut out = format!(
         "MLP kernel: one critic (18 inputs, [256, 256] ReLU, 1 output), rows per call, one thread\n\
          machine matmul (512^3 sgemm, matrixmultiply, 1 thread): {matmul:.1} GFLOP/s\n\

@@ -5,11 +5,33 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
+use clap::Args;
+
+#[derive(Args, Debug)]
+pub struct CopyBundlesArgs {
+    /// The folder of NAME.safetensors bundles to check and copy.
+    from: PathBuf,
+    /// Where they go (created if missing).
+    to: PathBuf,
+}
+
+impl CopyBundlesArgs {
+    pub fn run(self) -> anyhow::Result<()> {
+        let names = copy(&self.from, &self.to)?;
+        println!(
+            "copied {} bundles to {}: {}",
+            names.len(),
+            self.to.display(),
+            names.join(", ")
+        );
+        Ok(())
+    }
+}
 
 /// Checks every `*.safetensors` file in `from` as the server loads it, then copies them all into
 /// `to`, each written under a temporary name and renamed, so that a server reloading `to` never
 /// reads half a file. Copies nothing when any is bad or there are none. Returns the names copied.
-pub fn copy(from: &Path, to: &Path) -> anyhow::Result<Vec<String>> {
+fn copy(from: &Path, to: &Path) -> anyhow::Result<Vec<String>> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(from)
         .with_context(|| format!("cannot read the bundle directory {}", from.display()))?
         .filter_map(Result::ok)
@@ -24,7 +46,7 @@ pub fn copy(from: &Path, to: &Path) -> anyhow::Result<Vec<String>> {
     );
     let mut bad = Vec::new();
     for file in &files {
-        if let Err(e) = crate::serve::servable(file) {
+        if let Err(e) = prac::serve::servable(file) {
             bad.push(e.to_string());
         }
     }
