@@ -9,7 +9,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use prac::domains::{DOMAINS, EpisodeTotals, make};
-use prac::eval::mean_std;
+use prac::eval::{Outcome, Summary};
 
 #[derive(Args, Debug)]
 pub struct BenchDomainsArgs {
@@ -110,8 +110,7 @@ fn bench(
             }
         }
         let steps_per_second = steps as f64 / start.elapsed().as_secs_f64();
-        let (mut returns, mut discounted, mut lengths) = (Vec::new(), Vec::new(), Vec::new());
-        let (mut distances, mut terminated) = (Vec::new(), 0);
+        let mut outcomes = Vec::with_capacity(episodes);
         let mut term_sums: Vec<(&'static str, f64)> = Vec::new();
         // Actions of their own: how many the timed loop drew depends on the machine's speed.
         let mut rng = ChaCha8Rng::seed_from_u64(1);
@@ -132,36 +131,29 @@ fn bench(
                     break;
                 }
             }
-            returns.push(totals.ret);
-            discounted.push(totals.discounted);
-            lengths.push(totals.steps as f64);
-            terminated += usize::from(totals.terminated);
-            distances.extend(prac::domains::forward_distance(start, env.as_ref()));
+            outcomes.push(Outcome {
+                ret: totals.ret,
+                discounted: totals.discounted,
+                steps: totals.steps as f64,
+                terminated: totals.terminated,
+                distance: prac::domains::forward_distance(start, env.as_ref()),
+            });
         }
-        let (mean_return, std_return) = mean_std(&returns);
-        let (mean_discounted, std_discounted) = mean_std(&discounted);
-        let (mean_length, std_length) = mean_std(&lengths);
-        let (mean_distance, std_distance) = match distances.is_empty() {
-            true => (None, None),
-            false => {
-                let (m, s) = mean_std(&distances);
-                (Some(m), Some(s))
-            }
-        };
-        let steps: f64 = lengths.iter().sum();
+        let steps: f64 = outcomes.iter().map(|o| o.steps).sum();
+        let summary = Summary::of(outcomes);
         rows.push(DomainBench {
             name: spec.name,
             steps_per_second,
             episodes,
-            mean_return,
-            std_return,
-            mean_discounted,
-            std_discounted,
-            mean_length,
-            std_length,
-            terminated,
-            mean_distance,
-            std_distance,
+            mean_return: summary.return_mean,
+            std_return: summary.return_std,
+            mean_discounted: summary.discounted_mean,
+            std_discounted: summary.discounted_std,
+            mean_length: summary.steps_mean,
+            std_length: summary.steps_std,
+            terminated: summary.terminated,
+            mean_distance: summary.distance_mean,
+            std_distance: summary.distance_std,
             reward_terms: term_sums
                 .into_iter()
                 .map(|(name, sum)| (name, sum / steps))

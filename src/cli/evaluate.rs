@@ -10,7 +10,7 @@ use serde::Serialize;
 
 use prac::bundle;
 use prac::domains;
-use prac::eval::{Episode, mean_std, policy_episodes, random_episodes};
+use prac::eval::{Episode, Summary, policy_episodes, random_episodes};
 
 #[derive(Args, Debug)]
 pub struct EvaluateArgs {
@@ -69,15 +69,14 @@ pub struct Evaluation {
 }
 
 fn summarise(episodes: &[Episode]) -> Played {
-    let of = |f: &dyn Fn(&Episode) -> f64| episodes.iter().map(f).collect::<Vec<_>>();
-    let (return_mean, return_std) = mean_std(&of(&|e| e.ret));
+    let s = Summary::of_episodes(episodes);
     Played {
-        return_mean,
-        return_std,
-        discounted_mean: mean_std(&of(&|e| e.discounted)).0,
-        terminated: prac::eval::terminated_count(episodes),
-        steps_mean: mean_std(&of(&|e| e.len as f64)).0,
-        distance_mean: prac::eval::mean_distance(episodes),
+        return_mean: s.return_mean,
+        return_std: s.return_std,
+        discounted_mean: s.discounted_mean,
+        terminated: s.terminated,
+        steps_mean: s.steps_mean,
+        distance_mean: s.distance_mean,
     }
 }
 

@@ -26,6 +26,80 @@ pub struct Episode {
     pub actions: Vec<f32>,
 }
 
+impl Episode {
+    pub fn outcome(&self) -> Outcome {
+        Outcome {
+            ret: self.ret,
+            discounted: self.discounted,
+            steps: self.len as f64,
+            terminated: self.terminated,
+            distance: self.distance,
+        }
+    }
+}
+
+/// What one episode came to, whoever played it (a rollout here, a robot driven by the server
+/// in prac-sim, random actions in `prac bench-domains`).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Outcome {
+    pub ret: f64,
+    pub discounted: f64,
+    pub steps: f64,
+    /// Ended by the task (a fall, a landing), not the step limit.
+    pub terminated: bool,
+    /// Metres forward, for the domains that have a forward direction.
+    pub distance: Option<f64>,
+}
+
+/// What a set of episodes came to: the figures every report of episodes gives (`prac
+/// evaluate`, training's evaluations and final report, `prac bench-domains`, prac-sim).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Summary {
+    pub episodes: usize,
+    pub return_mean: f64,
+    pub return_std: f64,
+    pub discounted_mean: f64,
+    pub discounted_std: f64,
+    pub steps_mean: f64,
+    pub steps_std: f64,
+    /// Episodes the task ended early (a walker's falls).
+    pub terminated: usize,
+    /// Mean and population standard deviation of the forward distance; None unless every
+    /// episode has one.
+    pub distance_mean: Option<f64>,
+    pub distance_std: Option<f64>,
+}
+
+impl Summary {
+    /// Means and population standard deviations, in the episodes' order.
+    pub fn of(outcomes: impl IntoIterator<Item = Outcome>) -> Summary {
+        let outcomes: Vec<Outcome> = outcomes.into_iter().collect();
+        let of = |f: fn(&Outcome) -> f64| mean_std(&outcomes.iter().map(f).collect::<Vec<_>>());
+        let (return_mean, return_std) = of(|o| o.ret);
+        let (discounted_mean, discounted_std) = of(|o| o.discounted);
+        let (steps_mean, steps_std) = of(|o| o.steps);
+        let distances: Option<Vec<f64>> = outcomes.iter().map(|o| o.distance).collect();
+        let distance = distances.map(|d| mean_std(&d));
+        Summary {
+            episodes: outcomes.len(),
+            return_mean,
+            return_std,
+            discounted_mean,
+            discounted_std,
+            steps_mean,
+            steps_std,
+            terminated: outcomes.iter().filter(|o| o.terminated).count(),
+            distance_mean: distance.map(|d| d.0),
+            distance_std: distance.map(|d| d.1),
+        }
+    }
+
+    /// Of rollouts played here.
+    pub fn of_episodes(episodes: &[Episode]) -> Summary {
+        Summary::of(episodes.iter().map(Episode::outcome))
+    }
+}
+
 /// Plays one episode from `seed`; `act(obs, action)` writes an action in [-1, 1], which is
 /// scaled to the domain's bounds.
 pub fn run_episode(
@@ -72,17 +146,6 @@ pub fn mean_std(values: &[f64]) -> (f64, f64) {
     let mean = values.iter().sum::<f64>() / n;
     let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
     (mean, var.sqrt())
-}
-
-/// How many of the episodes the task ended early (a walker's falls).
-pub fn terminated_count(episodes: &[Episode]) -> usize {
-    episodes.iter().filter(|e| e.terminated).count()
-}
-
-/// Their mean forward distance in metres, for domains that have one.
-pub fn mean_distance(episodes: &[Episode]) -> Option<f64> {
-    let distances: Option<Vec<f64>> = episodes.iter().map(|e| e.distance).collect();
-    distances.map(|d| mean_std(&d).0)
 }
 
 /// Episodes of the deterministic policy `tanh(mu)`, seeds `seed..seed + episodes`.
@@ -248,4 +311,36 @@ fn grouped_model_errors(
                 .collect()
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{Outcome, Summary};
+
+    fn outcome(ret: f64, terminated: bool, distance: Option<f64>) -> Outcome {
+        Outcome {
+            ret,
+            discounted: ret / 2.0,
+            steps: if terminated { 10.0 } else { 30.0 },
+            terminated,
+            distance,
+        }
+    }
+
+    #[test]
+    fn a_summary_gives_means_population_deviations_falls_and_distances() {
+        let s = Summary::of([
+            outcome(1.0, true, Some(2.0)),
+            outcome(3.0, false, Some(4.0)),
+        ]);
+        assert_eq!(s.episodes, 2);
+        assert_eq!((s.return_mean, s.return_std), (2.0, 1.0));
+        assert_eq!((s.discounted_mean, s.discounted_std), (1.0, 0.5));
+        assert_eq!((s.steps_mean, s.steps_std), (20.0, 10.0));
+        assert_eq!(s.terminated, 1);
+        assert_eq!((s.distance_mean, s.distance_std), (Some(3.0), Some(1.0)));
+        // One episode without a distance: no distance figure at all.
+        let partial = Summary::of([outcome(1.0, false, Some(2.0)), outcome(1.0, false, None)]);
+        assert_eq!((partial.distance_mean, partial.distance_std), (None, None));
+    }
 }

@@ -330,8 +330,7 @@ impl Trainer {
         let gamma = self.options.sac.gamma;
         if self.progress.v_rand.is_none() {
             let episodes = eval::random_episodes(self.env.as_mut(), gamma, 20, self.options.seed)?;
-            let discounted: Vec<f64> = episodes.iter().map(|e| e.discounted).collect();
-            self.progress.v_rand = Some(eval::mean_std(&discounted).0);
+            self.progress.v_rand = Some(eval::Summary::of_episodes(&episodes).discounted_mean);
         }
         let mut csv = append(&self.options.csv, CSV_HEADER)?;
         let mut eval_csv = append(&self.options.eval_csv, EVAL_CSV_HEADER)?;
@@ -472,13 +471,12 @@ impl Trainer {
                     self.options.eval_episodes,
                     1 << 40,
                 )?;
-                let (mean, std) =
-                    eval::mean_std(&episodes.iter().map(|e| e.ret).collect::<Vec<_>>());
-                let (dmean, _) =
-                    eval::mean_std(&episodes.iter().map(|e| e.discounted).collect::<Vec<_>>());
-                let falls = eval::terminated_count(&episodes);
-                let distance =
-                    eval::mean_distance(&episodes).map_or_else(String::new, |d| d.to_string());
+                let summary = eval::Summary::of_episodes(&episodes);
+                let (mean, std) = (summary.return_mean, summary.return_std);
+                let (dmean, falls) = (summary.discounted_mean, summary.terminated);
+                let distance = summary
+                    .distance_mean
+                    .map_or_else(String::new, |d| d.to_string());
                 let seconds = seconds_before + started.elapsed().as_secs_f64();
                 writeln!(
                     eval_csv,
@@ -587,11 +585,11 @@ impl Trainer {
             self.options.value_episodes,
             eval_seed,
         )?;
-        let returns: Vec<f64> = episodes.iter().map(|e| e.ret).collect();
-        let (eval_return_mean, eval_return_std) = eval::mean_std(&returns);
+        let played = eval::Summary::of_episodes(&episodes);
+        let random = eval::Summary::of_episodes(&randoms);
         let value_scale = ValueScale {
-            v_pi: eval::mean_std(&episodes.iter().map(|e| e.discounted).collect::<Vec<_>>()).0,
-            v_rand: eval::mean_std(&randoms.iter().map(|e| e.discounted).collect::<Vec<_>>()).0,
+            v_pi: played.discounted_mean,
+            v_rand: random.discounted_mean,
         };
         let trajectories: Vec<Trajectory> = episodes
             .iter()
@@ -613,12 +611,11 @@ impl Trainer {
             episodes: self.progress.episode,
             seconds: self.progress.seconds,
             value_scale,
-            eval_return_mean,
-            eval_return_std,
-            eval_terminated: eval::terminated_count(&episodes),
-            eval_distance_mean: eval::mean_distance(&episodes),
-            random_return_mean: eval::mean_std(&randoms.iter().map(|e| e.ret).collect::<Vec<_>>())
-                .0,
+            eval_return_mean: played.return_mean,
+            eval_return_std: played.return_std,
+            eval_terminated: played.terminated,
+            eval_distance_mean: played.distance_mean,
+            random_return_mean: random.return_mean,
             model_errors,
             out: self.options.out.clone(),
         })

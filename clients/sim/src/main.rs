@@ -271,20 +271,17 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
             if *json {
                 println!("{}", serde_json::to_string_pretty(&results)?);
             } else {
-                let mean = |f: fn(&play::EpisodeResult) -> f64| {
-                    prac::eval::mean_std(&results.iter().map(f).collect::<Vec<_>>())
-                };
-                let (r, rs) = mean(|e| e.ret);
-                let (f, fs) = mean(|e| e.forecast);
-                let ended = results.iter().filter(|e| e.terminated).count();
+                let summary = prac::eval::Summary::of(results.iter().map(|e| e.outcome()));
+                let (r, rs) = (summary.return_mean, summary.return_std);
+                let (f, fs) =
+                    prac::eval::mean_std(&results.iter().map(|e| e.forecast).collect::<Vec<_>>());
+                let ended = summary.terminated;
                 println!(
                     "{} episodes: return {r:.2} +- {rs:.2}, forecast {f:.2} +- {fs:.2}, \
                      ended by the task in {ended}",
-                    results.len()
+                    summary.episodes
                 );
-                let distances: Option<Vec<f64>> = results.iter().map(|e| e.distance).collect();
-                if let Some(d) = distances {
-                    let (d, ds) = prac::eval::mean_std(&d);
+                if let (Some(d), Some(ds)) = (summary.distance_mean, summary.distance_std) {
                     println!("moved forward {d:.2} +- {ds:.2} m");
                 }
             }

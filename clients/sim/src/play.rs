@@ -66,6 +66,18 @@ pub struct EpisodeResult {
     pub commitment_violations: u64,
 }
 
+impl EpisodeResult {
+    pub fn outcome(&self) -> prac::eval::Outcome {
+        prac::eval::Outcome {
+            ret: self.ret,
+            discounted: self.discounted,
+            steps: self.steps as f64,
+            terminated: self.terminated,
+            distance: self.distance,
+        }
+    }
+}
+
 /// A frame to draw: the state after `step` steps, and the server's forecast there: the
 /// committed actions, the step each was decided at and the predicted observations as points.
 pub struct Snapshot {

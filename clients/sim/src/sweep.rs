@@ -4,7 +4,7 @@
 use std::fmt::Write as _;
 use std::path::Path;
 
-use prac::eval::{mean_std, random_episodes};
+use prac::eval::{Summary, mean_std, random_episodes};
 use prac::proto::PolicyInfo;
 use prac::render::chart::{Panel, Series, line_panels};
 use serde::Serialize;
@@ -76,7 +76,7 @@ pub async fn run(
     let mut env = prac::domains::make(&info.domain)
         .ok_or_else(|| anyhow::anyhow!("unknown domain '{}'", info.domain))?;
     let randoms = random_episodes(env.as_mut(), gamma, episodes, seed)?;
-    let v_rand = mean_std(&randoms.iter().map(|e| e.discounted).collect::<Vec<_>>()).0;
+    let v_rand = Summary::of_episodes(&randoms).discounted_mean;
     let bar = crate::progress((coefs.len() + 1) as u64 * episodes as u64, show_progress);
     // V_pi from episodes of their own, so NP at coefficient 0 is an independent estimate of 1.
     let greedy = play_many(
@@ -89,7 +89,7 @@ pub async fn run(
         &bar,
     )
     .await?;
-    let v_pi = mean_std(&greedy.iter().map(|e| e.discounted).collect::<Vec<_>>()).0;
+    let v_pi = Summary::of(greedy.iter().map(|e| e.outcome())).discounted_mean;
     let range = v_pi - v_rand;
     anyhow::ensure!(
         range > 0.0,
@@ -115,6 +115,7 @@ pub async fn run(
         let forecasts: Vec<f64> = results.iter().map(|e| e.forecast).collect();
         let (np, np_std) = mean_std(&np);
         let (forecast, forecast_std) = mean_std(&forecasts);
+        let summary = Summary::of(results.iter().map(|e| e.outcome()));
         rows.push(SweepRow {
             coef,
             epsilon,
@@ -124,9 +125,8 @@ pub async fn run(
             forecast_std,
             // Lemma 1: V^PrAC >= V_pi - eps / (1 - gamma), normalised.
             bound: 1.0 - epsilon / ((1.0 - gamma) * range),
-            discounted_return: mean_std(&results.iter().map(|e| e.discounted).collect::<Vec<_>>())
-                .0,
-            return_mean: mean_std(&results.iter().map(|e| e.ret).collect::<Vec<_>>()).0,
+            discounted_return: summary.discounted_mean,
+            return_mean: summary.return_mean,
             replans_per_step: mean_std(
                 &results
                     .iter()
@@ -134,11 +134,9 @@ pub async fn run(
                     .collect::<Vec<_>>(),
             )
             .0,
-            episodes: results.len(),
-            falls: results
-                .iter()
-                .all(|e| e.distance.is_some())
-                .then(|| results.iter().filter(|e| e.terminated).count()),
+            episodes: summary.episodes,
+            // Falls only where a fall means something: the walkers, which move forward.
+            falls: summary.distance_mean.map(|_| summary.terminated),
         });
     }
     bar.finish_and_clear();
