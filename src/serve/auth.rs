@@ -9,7 +9,6 @@ use std::path::Path;
 use anyhow::Context;
 use sha2::{Digest, Sha256};
 use tonic::Status;
-use tonic::metadata::MetadataMap;
 
 pub(super) struct Tokens {
     digests: HashSet<[u8; 32]>,
@@ -44,13 +43,8 @@ impl Tokens {
         Ok(Tokens { digests })
     }
 
-    /// The caller's identity: a hex digest prefix of its token.
-    pub(super) fn caller(&self, metadata: &MetadataMap) -> Result<String, Status> {
-        self.caller_of(metadata.as_ref())
-    }
-
-    /// The same from a request's HTTP/2 headers.
-    pub(super) fn caller_of(&self, headers: &http::HeaderMap) -> Result<String, Status> {
+    /// The caller's identity from a request's HTTP/2 headers: a hex digest prefix of its token.
+    pub(super) fn caller(&self, headers: &http::HeaderMap) -> Result<String, Status> {
         let value = headers.get("authorization").ok_or_else(|| {
             Status::unauthenticated("missing 'authorization: Bearer TOKEN' metadata")
         })?;
@@ -68,13 +62,10 @@ impl Tokens {
     }
 }
 
-/// The caller of a request: None when auth is off.
-pub(super) fn caller(
-    tokens: Option<&Tokens>,
-    metadata: &MetadataMap,
-) -> Result<Option<String>, Status> {
-    tokens.map(|t| t.caller(metadata)).transpose()
-}
+/// Who made a prac.v1 call (None with auth off): the intake attaches it to the request from its
+/// headers, once, and the handlers read it.
+#[derive(Clone, Debug)]
+pub(super) struct Caller(pub(super) Option<String>);
 
 #[cfg(test)]
 mod tests {
@@ -84,7 +75,7 @@ mod tests {
     fn tokens_identify_callers() {
         let tokens =
             Tokens::parse("# ops\nalpha-0123456789abcdef\n\nbeta-0123456789abcdef\n").unwrap();
-        let mut md = MetadataMap::new();
+        let mut md = http::HeaderMap::new();
         assert_eq!(
             tokens.caller(&md).unwrap_err().code(),
             tonic::Code::Unauthenticated

@@ -29,6 +29,7 @@ use http_body::{Body as HttpBody, Frame, SizeHint};
 use hyper::body::Incoming;
 use tonic::Status;
 
+use super::auth::Caller;
 use super::auth::Tokens;
 use super::metrics::Metrics;
 use super::transport::Probation;
@@ -175,11 +176,14 @@ impl Intake {
     ) -> Result<http::Request<IntakeBody>, Status> {
         let path = request.uri().path();
         let prac = path.starts_with(PRAC_PATH);
-        if prac && let Some(tokens) = &self.tokens {
-            tokens
-                .caller_of(request.headers())
-                .map_err(|s| self.refuse(s))?;
-        }
+        let caller = match &self.tokens {
+            Some(tokens) if prac => Some(
+                tokens
+                    .caller(request.headers())
+                    .map_err(|s| self.refuse(s))?,
+            ),
+            _ => None,
+        };
         if connection.held.load(Ordering::Relaxed) >= self.limits.bytes_per_connection {
             return Err(self.refuse(Status::resource_exhausted(format!(
                 "this connection holds its maximum of {} bytes of unfinished requests; finish \
@@ -207,6 +211,9 @@ impl Intake {
             SMALL_MESSAGE
         };
         let (mut parts, incoming) = request.into_parts();
+        if prac {
+            parts.extensions.insert(Caller(caller));
+        }
         let message_due = streamed.then(MessageDue::default);
         if let Some(due) = &message_due {
             parts.extensions.insert(due.clone());

@@ -422,11 +422,6 @@ pub async fn serve(
             cancel.cancel();
         }
     });
-    let metrics = state.metrics.clone();
-    let _evictor = state
-        .sessions
-        .start_evictor(move |evicted| metrics.evicted(evicted));
-
     let dir = config.bundles.clone();
     let load = tokio::task::spawn_blocking(move || Registry::load_dir(&dir));
     let loaded = tokio::select! {
@@ -490,7 +485,12 @@ fn server_state(
             metrics.clone(),
         )),
         registry: RwLock::new(None),
-        sessions: Arc::new(Sessions::new(config.max_sessions, config.session_ttl)),
+        sessions: {
+            let metrics = metrics.clone();
+            Sessions::start(config.max_sessions, config.session_ttl, move |evicted| {
+                metrics.evicted(evicted)
+            })
+        },
         max_horizon_limit: config.max_horizon_limit,
         max_message_bytes: config
             .requests

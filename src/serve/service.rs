@@ -12,6 +12,7 @@ use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status, Streaming};
 
 use super::arrival::Arrival;
+use super::auth::Caller;
 use super::batch::{Answer, Batcher};
 use super::deadline;
 use super::intake::{MessageDue, message_overdue, message_overdue_status};
@@ -119,8 +120,16 @@ impl ServerState {
             .ok_or_else(|| Status::unavailable("the server is still loading its bundles; retry"))
     }
 
-    fn caller(&self, metadata: &tonic::metadata::MetadataMap) -> Result<Option<String>, Status> {
-        super::auth::caller(self.auth.as_deref(), metadata).inspect_err(|s| self.metrics.error(s))
+    /// The caller the intake attached from the call's headers (None with auth off). A call
+    /// that did not come through the intake (in-process tests) has none: refused when auth is on.
+    fn caller<T>(&self, request: &Request<T>) -> Result<Option<String>, Status> {
+        match request.extensions().get::<Caller>() {
+            Some(Caller(caller)) => Ok(caller.clone()),
+            None if self.auth.is_none() => Ok(None),
+            None => self.counted(Err(Status::unauthenticated(
+                "the call did not pass the server's authentication",
+            ))),
+        }
     }
 
     /// Counts a handler's error in the metrics: each RPC's handler goes through it once (steps
@@ -299,7 +308,7 @@ impl Prac for PracService {
         &self,
         request: Request<proto::ListPoliciesRequest>,
     ) -> Result<Response<proto::ListPoliciesResponse>, Status> {
-        self.state.caller(request.metadata())?;
+        self.state.caller(&request)?;
         let registry = self.state.counted(self.state.registry())?;
         let policies = registry.iter().map(|(n, p)| policy_info(n, p)).collect();
         Ok(Response::new(proto::ListPoliciesResponse { policies }))
@@ -309,7 +318,7 @@ impl Prac for PracService {
         &self,
         request: Request<proto::OpenSessionRequest>,
     ) -> Result<Response<proto::OpenSessionResponse>, Status> {
-        let owner = self.state.caller(request.metadata())?;
+        let owner = self.state.caller(&request)?;
         self.state
             .counted(self.state.open_session(owner, request.into_inner()))
             .map(Response::new)
@@ -319,7 +328,7 @@ impl Prac for PracService {
         &self,
         request: Request<proto::CloseSessionRequest>,
     ) -> Result<Response<proto::CloseSessionResponse>, Status> {
-        let caller = self.state.caller(request.metadata())?;
+        let caller = self.state.caller(&request)?;
         let slot = self.state.counted(
             self.state
                 .sessions
@@ -336,7 +345,7 @@ impl Prac for PracService {
     ) -> Result<Response<proto::StepResponse>, Status> {
         let deadline = deadline::of(request.metadata(), Instant::now());
         let arrival = Arrival::of(request.extensions());
-        let caller = self.state.caller(request.metadata())?;
+        let caller = self.state.caller(&request)?;
         // Returned at once, so the response reaches the transport: the step stays applied.
         self.state
             .step(request.into_inner(), caller.as_deref(), deadline, arrival)
@@ -352,7 +361,7 @@ impl Prac for PracService {
     ) -> Result<Response<Self::StepStreamStream>, Status> {
         // The stream's deadline bounds each of its steps.
         let deadline = deadline::of(request.metadata(), Instant::now());
-        let caller = self.state.caller(request.metadata())?;
+        let caller = self.state.caller(&request)?;
         let message_due = request.extensions().get::<MessageDue>().cloned();
         let mut inbound = request.into_inner();
         let (tx, rx) = mpsc::channel(STREAM_BUFFER);
@@ -416,7 +425,7 @@ impl Prac for PracService {
         &self,
         request: Request<proto::GetPlanRequest>,
     ) -> Result<Response<proto::Plan>, Status> {
-        let caller = self.state.caller(request.metadata())?;
+        let caller = self.state.caller(&request)?;
         let slot = self.state.counted(
             self.state
                 .sessions
@@ -433,7 +442,7 @@ impl Prac for PracService {
         &self,
         request: Request<proto::WatchPlanRequest>,
     ) -> Result<Response<Self::WatchPlanStream>, Status> {
-        let caller = self.state.caller(request.metadata())?;
+        let caller = self.state.caller(&request)?;
         let id = request.into_inner().session_id;
         let slot = self.state.counted(
             self.state

@@ -581,8 +581,8 @@ struct Tombstones {
 /// server by about 0.5 MB a minute towards a 13 MB plateau; 4,096 reaches its plateau in minutes.
 const MAX_TOMBSTONES: usize = 4_096;
 
-/// Stops the evictor of [`Sessions::start_evictor`] when dropped.
-pub(crate) struct Evictor(tokio::task::JoinHandle<()>);
+/// Stops the evictor of [`Sessions::start`] when dropped, with its store.
+struct Evictor(tokio::task::JoinHandle<()>);
 
 impl Drop for Evictor {
     fn drop(&mut self) {
@@ -596,6 +596,8 @@ pub(crate) struct Sessions {
     max_sessions: usize,
     ttl: Duration,
     epoch: Instant,
+    /// Set by [`Sessions::start`]: the store's own evictor, which ends when the store does.
+    evictor: std::sync::OnceLock<Evictor>,
 }
 
 fn rfc3339(t: SystemTime) -> String {
@@ -618,7 +620,32 @@ impl Sessions {
             max_sessions,
             ttl,
             epoch: Instant::now(),
+            evictor: std::sync::OnceLock::new(),
         }
+    }
+
+    /// A store that evicts its idle sessions every quarter of the TTL (10 ms to 1 s) for as long
+    /// as it lives, telling `on_evicted` how many went each time. Needs a tokio runtime.
+    pub(crate) fn start(
+        max_sessions: usize,
+        ttl: Duration,
+        on_evicted: impl Fn(usize) + Send + 'static,
+    ) -> Arc<Sessions> {
+        let sessions = Arc::new(Sessions::new(max_sessions, ttl));
+        let store = Arc::downgrade(&sessions);
+        let period = (ttl / 4).clamp(Duration::from_millis(10), Duration::from_secs(1));
+        let evictor = Evictor(tokio::spawn(async move {
+            let mut tick = tokio::time::interval(period);
+            loop {
+                tick.tick().await;
+                let Some(sessions) = store.upgrade() else {
+                    return;
+                };
+                on_evicted(sessions.evict_idle());
+            }
+        }));
+        let _ = sessions.evictor.set(evictor);
+        sessions
     }
 
     fn now_ms(&self) -> u64 {
@@ -733,26 +760,6 @@ impl Sessions {
             }
             None => Err(self.why_missing(id)),
         }
-    }
-
-    /// Evicts idle sessions every quarter of the TTL (10 ms to 1 s) until the returned guard is
-    /// dropped, telling `on_evicted` how many went each time.
-    pub(crate) fn start_evictor(
-        self: &Arc<Self>,
-        on_evicted: impl Fn(usize) + Send + 'static,
-    ) -> Evictor {
-        let sessions = Arc::downgrade(self);
-        let period = (self.ttl / 4).clamp(Duration::from_millis(10), Duration::from_secs(1));
-        Evictor(tokio::spawn(async move {
-            let mut tick = tokio::time::interval(period);
-            loop {
-                tick.tick().await;
-                let Some(sessions) = sessions.upgrade() else {
-                    return;
-                };
-                on_evicted(sessions.evict_idle());
-            }
-        }))
     }
 
     /// Removes every session idle for longer than the TTL; returns how many. Idle time starts

@@ -80,8 +80,8 @@ async fn idle_sessions_expire_while_busy_ones_live_on() {
         a.batch_max = Some(0);
     });
     let service = service(&config);
+    // The store evicts by itself.
     let sessions = service.state.sessions.clone();
-    let _evictor = sessions.start_evictor(|_| {});
     let idle = open(&service, Default::default()).await;
     let busy = open(&service, Default::default()).await;
     step(&service, &idle, &observation(0, 0), true)
@@ -267,4 +267,41 @@ async fn serve_runs_from_a_bound_listener_until_its_shutdown_future_resolves() {
         .expect("the server stops within its drain timeout")
         .unwrap()
         .unwrap();
+}
+
+/// With tokens on, handlers serve the caller the intake attached from the headers, and refuse a
+/// call that carries none (one that did not come through the intake).
+#[tokio::test]
+async fn handlers_take_the_caller_the_intake_attached() {
+    let dir = toy_bundles();
+    let config = config(dir.path(), |_| {});
+    let tokens = auth::Tokens::parse("alpha-0123456789abcdef\n").unwrap();
+    let state = server_state(&config, Some(tokens), CancellationToken::new());
+    let loaded = Registry::load_dir(&config.bundles).unwrap();
+    *state.registry.write().unwrap() = Some(Arc::new(loaded.registry));
+    let service = PracService { state };
+    let request = || proto::OpenSessionRequest {
+        policy: "toy".into(),
+        options: None,
+        resume: None,
+    };
+    let bare = service.open_session(Request::new(request())).await;
+    assert_eq!(bare.unwrap_err().code(), Code::Unauthenticated);
+    let mut attached = Request::new(request());
+    attached
+        .extensions_mut()
+        .insert(auth::Caller(Some("alpha".into())));
+    let id = service
+        .open_session(attached)
+        .await
+        .unwrap()
+        .into_inner()
+        .session_id;
+    // The session is the caller's: another caller cannot close it.
+    let mut other = Request::new(proto::CloseSessionRequest { session_id: id });
+    other
+        .extensions_mut()
+        .insert(auth::Caller(Some("beta".into())));
+    let refused = service.close_session(other).await.unwrap_err();
+    assert_eq!(refused.code(), Code::PermissionDenied, "{refused:?}");
 }
