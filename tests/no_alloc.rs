@@ -11,7 +11,7 @@ use std::sync::Arc;
 
 use prac::plan::{ReplanConfig, ReplanScratch};
 use prac::policy::Evaluator;
-use prac::serve::{Arrival, Session, SessionSettings};
+use prac::serve::{Arrival, Session, SessionSettings, StepInput};
 use prac::testing::hopper_sized_manifest;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -94,20 +94,24 @@ fn steps_after_the_first_do_not_allocate() {
         let mut evaluator = Evaluator::for_sessions(policy.clone(), 1);
         let mut scratch = ReplanScratch::new(15, 3);
         let mut obs: Vec<f32> = (0..15).map(|i| (i as f32 * 0.3).sin()).collect();
+        let first = StepInput {
+            observation: &obs,
+            new_episode: true,
+            arrival: Arrival::next(),
+        };
         session
-            .step(&mut evaluator, &mut scratch, &obs, true, Arrival::next())
+            .apply_step(&mut evaluator, &mut scratch, first)
             .unwrap();
         COUNTING.with(|c| c.set(true));
         for t in 0..200 {
             obs[t % 15] += 0.01;
+            let input = StepInput {
+                observation: &obs,
+                new_episode: t % 50 == 0,
+                arrival: Arrival::next(),
+            };
             session
-                .step(
-                    &mut evaluator,
-                    &mut scratch,
-                    &obs,
-                    t % 50 == 0,
-                    Arrival::next(),
-                )
+                .apply_step(&mut evaluator, &mut scratch, input)
                 .unwrap();
         }
         COUNTING.with(|c| c.set(false));

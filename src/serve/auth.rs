@@ -62,7 +62,7 @@ impl Tokens {
     }
 }
 
-/// Who made a prac.v1 call (None with auth off): the intake attaches it to the request from its
+/// Who made a prac.v1 call: with tokens on, the intake attaches it to the request from its
 /// headers, once, and the handlers read it.
 #[derive(Clone, Debug)]
 pub(super) struct Caller(pub(super) Option<String>);

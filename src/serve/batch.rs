@@ -17,9 +17,8 @@ use tokio::sync::oneshot;
 use tonic::Status;
 
 use super::arrival::Arrival;
-use super::session::{Begun, SessionSlot};
+use super::session::{Session, SessionSlot, StepInput, apply_steps};
 use super::workspace::{Workspace, Workspaces};
-use crate::plan::{NonFinite, ReplanOutcome, replan_batch};
 use crate::policy::Policy;
 use crate::proto;
 
@@ -263,50 +262,25 @@ impl Worker {
         }
         // Answered under the sessions' locks, so that a step taken back (its caller gave up) is
         // never seen applied by another call (CloseSession, GetPlan) in between.
-        let mut sessions: Vec<_> = slots.iter().map(|slot| slot.lock()).collect();
-        {
-            let begun: Vec<Result<Begun, Status>> = sessions
-                .iter()
-                .zip(&requests)
-                .map(|(s, (r, arrival))| {
-                    s.begin(&r.observation, r.new_episode, *arrival)
-                        .map_err(Status::from)
-                })
-                .collect();
-            let mut rngs: Vec<_> = sessions.iter().map(|s| s.rng()).collect();
-            let Workspace { evaluator, scratch } = self.workspaces.get(&sessions[0].policy);
-            let mut jobs = Vec::with_capacity(sessions.len());
-            for (((session, rng), request), begun) in sessions
-                .iter_mut()
-                .zip(&mut rngs)
-                .zip(&requests)
-                .zip(&begun)
-            {
-                if let Ok(begun) = begun {
-                    jobs.push(session.job(&request.0.observation, begun, rng));
-                }
-            }
-            let mut results: Vec<Result<ReplanOutcome, NonFinite>> =
-                vec![Err(NonFinite { what: "", index: 0 }); jobs.len()];
-            replan_batch(evaluator, &mut jobs, scratch, &mut results);
-            drop(jobs);
-            let mut results = results.into_iter();
-            let mut answers: Vec<Answer> = Vec::with_capacity(sessions.len());
-            for ((session, rng), begun) in sessions.iter_mut().zip(rngs).zip(begun) {
-                answers.push(begun.and_then(|begun| {
-                    let outcome = results
-                        .next()
-                        .expect("one result per job")
-                        .map_err(|e| Status::from(super::session::StepError::from(e)))?;
-                    let report = session.commit(&begun, outcome, rng);
-                    Ok((session.response(&report), report.served))
-                }));
-            }
-            for ((reply, answer), session) in replies.into_iter().zip(answers).zip(&mut sessions) {
-                // The caller gave up while this step was replanned: nobody will see its answer.
-                if let Err(Ok((_, served))) = reply.send(answer) {
-                    session.take_back(served);
-                }
+        let mut guards: Vec<_> = slots.iter().map(|slot| slot.lock()).collect();
+        let inputs: Vec<StepInput<'_>> = requests
+            .iter()
+            .map(|(request, arrival)| StepInput {
+                observation: &request.observation,
+                new_episode: request.new_episode,
+                arrival: *arrival,
+            })
+            .collect();
+        let Workspace { evaluator, scratch } = self.workspaces.get(&guards[0].policy);
+        let mut sessions: Vec<&mut Session> = guards.iter_mut().map(|guard| &mut **guard).collect();
+        let reports = apply_steps(&mut sessions, &inputs, evaluator, scratch);
+        for ((reply, report), session) in replies.into_iter().zip(reports).zip(sessions) {
+            let answer: Answer = report
+                .map(|report| (session.response(&report), report.served))
+                .map_err(Status::from);
+            // The caller gave up while this step was replanned: nobody will see its answer.
+            if let Err(Ok((_, served))) = reply.send(answer) {
+                session.take_back(served);
             }
         }
     }

@@ -31,7 +31,7 @@ use registry::Registry;
 pub use registry::servable;
 use service::{PracService, ServerState};
 use session::Sessions;
-pub use session::{Session, SessionSettings};
+pub use session::{Session, SessionSettings, StepInput};
 
 use crate::proto::{self, prac_server::PracServer};
 

@@ -19,7 +19,8 @@ use super::intake::{MessageDue, message_overdue, message_overdue_status};
 use super::metrics::{ReplannedBy, StepAnswer};
 use super::registry::Registry;
 use super::session::{
-    Session, SessionError, SessionSettings, SessionSlot, Sessions, StepError, new_session_id,
+    Session, SessionError, SessionSettings, SessionSlot, Sessions, StepError, StepInput,
+    new_session_id,
 };
 use super::workspace::{Workspace, Workspaces};
 use crate::plan::MAX_CHUNK;
@@ -260,13 +261,12 @@ impl ServerState {
         INLINE.with_borrow_mut(|inline| {
             let Workspace { evaluator, scratch } = inline.get(&slot.policy);
             let mut session = slot.lock();
-            let report = session.step(
-                evaluator,
-                scratch,
-                &request.observation,
-                request.new_episode,
+            let input = StepInput {
+                observation: &request.observation,
+                new_episode: request.new_episode,
                 arrival,
-            )?;
+            };
+            let report = session.apply_step(evaluator, scratch, input)?;
             self.metrics.replanned(ReplannedBy::Handler);
             Ok((session.response(&report), report.served))
         })

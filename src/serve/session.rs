@@ -11,6 +11,7 @@ use tokio::time::Instant;
 
 use rand::{RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use smallvec::SmallVec;
 use tokio::sync::watch;
 
 use super::arrival::Arrival;
@@ -200,6 +201,67 @@ struct BeforeCommit {
     last_arrival: Arrival,
 }
 
+/// One step as its request brings it.
+#[derive(Clone, Copy, Debug)]
+pub struct StepInput<'a> {
+    pub observation: &'a [f32],
+    pub new_episode: bool,
+    pub arrival: Arrival,
+}
+
+/// Algorithm 1, lines 4-10 as a server, for one step of each of `sessions` (all of one policy,
+/// each session once): check each step ([`Session::begin`]), replan the plans of those that pass
+/// together in one `replan_batch` on the observed states (each old plan minus the action
+/// executed at the last step), and commit each result. A session whose step is refused, or
+/// whose replan meets a non-finite value, is left exactly as it was.
+///
+/// The request handler applies a batch of one, which allocates nothing after the session's
+/// first step; a batch worker applies many at once.
+pub(crate) fn apply_steps(
+    sessions: &mut [&mut Session],
+    inputs: &[StepInput<'_>],
+    evaluator: &mut Evaluator,
+    scratch: &mut ReplanScratch,
+) -> SmallVec<[Result<StepReport, StepError>; 1]> {
+    debug_assert_eq!(sessions.len(), inputs.len());
+    debug_assert!(
+        sessions
+            .iter()
+            .all(|s| Arc::ptr_eq(evaluator.policy(), &s.policy))
+    );
+    let begun: SmallVec<[Result<Begun, StepError>; 1]> = sessions
+        .iter()
+        .zip(inputs)
+        .map(|(s, input)| s.begin(input.observation, input.new_episode, input.arrival))
+        .collect();
+    // Copies: a failed replan must not advance a session's rng either.
+    let mut rngs: SmallVec<[ChaCha8Rng; 1]> = sessions.iter().map(|s| s.rng()).collect();
+    let mut results: SmallVec<[Result<ReplanOutcome, NonFinite>; 1]> = SmallVec::new();
+    {
+        let mut jobs: SmallVec<[ReplanJob<'_, ChaCha8Rng>; 1]> = SmallVec::new();
+        for (((session, rng), input), begun) in
+            sessions.iter_mut().zip(&mut rngs).zip(inputs).zip(&begun)
+        {
+            if let Ok(begun) = begun {
+                jobs.push(session.job(input.observation, begun, rng));
+            }
+        }
+        results.resize(jobs.len(), Err(NonFinite { what: "", index: 0 }));
+        replan_batch(evaluator, &mut jobs, scratch, &mut results);
+    }
+    let mut results = results.into_iter();
+    sessions
+        .iter_mut()
+        .zip(rngs)
+        .zip(begun)
+        .map(|((session, rng), begun)| {
+            let begun = begun?;
+            let outcome = results.next().expect("one result per job")?;
+            Ok(session.commit(&begun, outcome, rng))
+        })
+        .collect()
+}
+
 impl Session {
     pub fn new(id: String, policy: Arc<Policy>, settings: SessionSettings) -> Session {
         let (obs, act) = (policy.obs_dim(), policy.act_dim());
@@ -228,35 +290,18 @@ impl Session {
         self.steps_served
     }
 
-    /// Algorithm 1, lines 4-10 as a server: replan on the observed state (the old plan minus the
-    /// action executed at the last step), and commit the result. Replan and the networks do not
-    /// allocate here after the session's first step. The batch worker does the same in three
-    /// parts ([`Session::begin`], [`Session::job`], [`Session::commit`]) around one
-    /// `replan_batch` for many sessions.
-    ///
-    /// `evaluator` (for this session's policy) and `scratch` may be shared by sessions served
-    /// from one thread; sized with [`Evaluator::for_sessions`] they never grow.
-    pub fn step(
+    /// Applies one step (see [`apply_steps`]): the request handler's batch of one. `evaluator`
+    /// (for this session's policy) and `scratch` may be shared by sessions served from one
+    /// thread; sized with [`Evaluator::for_sessions`] they never grow.
+    pub fn apply_step(
         &mut self,
         evaluator: &mut Evaluator,
         scratch: &mut ReplanScratch,
-        observation: &[f32],
-        new_episode: bool,
-        arrival: Arrival,
+        input: StepInput<'_>,
     ) -> Result<StepReport, StepError> {
-        debug_assert!(Arc::ptr_eq(evaluator.policy(), &self.policy));
-        let begun = self.begin(observation, new_episode, arrival)?;
-        // A failed replan must not advance the session's rng either.
-        let mut rng = self.rng.clone();
-        let mut results = [Ok(ReplanOutcome {
-            kept: 0,
-            broke_at: None,
-            appended: 0,
-        })];
-        let mut jobs = [self.job(observation, &begun, &mut rng)];
-        replan_batch(evaluator, &mut jobs, scratch, &mut results);
-        let [result] = results;
-        Ok(self.commit(&begun, result?, rng))
+        apply_steps(&mut [self], &[input], evaluator, scratch)
+            .pop()
+            .expect("one result per session")
     }
 
     /// Checks the observation and the step's arrival, and works out the step index; changes
@@ -821,7 +866,15 @@ mod tests {
         let mut evaluator = Evaluator::for_sessions(s.policy.clone(), 1);
         let mut scratch = ReplanScratch::new(3, 2);
         let report = s
-            .step(&mut evaluator, &mut scratch, obs, false, Arrival::next())
+            .apply_step(
+                &mut evaluator,
+                &mut scratch,
+                StepInput {
+                    observation: obs,
+                    new_episode: false,
+                    arrival: Arrival::next(),
+                },
+            )
             .unwrap();
         s.response(&report)
     }
@@ -862,8 +915,17 @@ mod tests {
         let mut scratch = ReplanScratch::new(3, 2);
         let (early, late, later) = (Arrival::next(), Arrival::next(), Arrival::next());
         let obs = [0.1, 0.2, 0.3];
-        let mut step =
-            |s: &mut Session, arrival| s.step(&mut evaluator, &mut scratch, &obs, false, arrival);
+        let mut step = |s: &mut Session, arrival| {
+            s.apply_step(
+                &mut evaluator,
+                &mut scratch,
+                StepInput {
+                    observation: &obs,
+                    new_episode: false,
+                    arrival,
+                },
+            )
+        };
         assert_eq!(step(&mut s, late).unwrap().step, 0);
         let plan = s.plan_proto();
         assert!(matches!(step(&mut s, early), Err(StepError::OvertakenBy)));

@@ -11,7 +11,7 @@ use crate::bundle;
 use crate::plan::ReplanScratch;
 use crate::policy::{Evaluator, Policy};
 use crate::proto;
-use crate::serve::session::{Session, SessionSettings};
+use crate::serve::session::{Session, SessionSettings, StepInput};
 use crate::testing::toy_policy;
 
 /// Seed inputs: a valid bundle (the loader's mutations start from it).
@@ -85,13 +85,13 @@ fn plan_once(policy: Arc<Policy>) {
     let mut session = Session::new("fuzz".into(), policy.clone(), settings);
     let mut evaluator = Evaluator::for_sessions(policy, 1);
     let mut scratch = ReplanScratch::new(od, ad);
-    if let Ok(report) = session.step(
-        &mut evaluator,
-        &mut scratch,
-        &vec![0.0; od],
-        true,
-        crate::serve::arrival::Arrival::next(),
-    ) {
+    let zeros = vec![0.0; od];
+    let input = StepInput {
+        observation: &zeros,
+        new_episode: true,
+        arrival: crate::serve::arrival::Arrival::next(),
+    };
+    if let Ok(report) = session.apply_step(&mut evaluator, &mut scratch, input) {
         let response = session.response(&report);
         assert!(response.action.iter().all(|a| a.is_finite()));
     }
@@ -189,13 +189,12 @@ pub fn requests(data: &[u8]) {
     let mut evaluator = Evaluator::for_sessions(policy, 1);
     let mut scratch = ReplanScratch::new(3, 2);
     for step in input.steps.iter().take(64) {
-        if let Ok(report) = session.step(
-            &mut evaluator,
-            &mut scratch,
-            &step.observation,
-            step.new_episode,
-            crate::serve::arrival::Arrival::next(),
-        ) {
+        let input = StepInput {
+            observation: &step.observation,
+            new_episode: step.new_episode,
+            arrival: crate::serve::arrival::Arrival::next(),
+        };
+        if let Ok(report) = session.apply_step(&mut evaluator, &mut scratch, input) {
             let response = session.response(&report);
             assert!(!response.forecast.is_empty() && response.forecast.len() <= 257);
             assert!(response.action.iter().all(|a| a.is_finite()));
