@@ -128,33 +128,6 @@ fn report(e: &Evaluation) -> String {
 mod tests {
     use super::*;
 
-    fn episode(ret: f64, terminated: bool, distance: Option<f64>) -> Episode {
-        Episode {
-            ret,
-            discounted: ret / 2.0,
-            len: if terminated { 10 } else { 20 },
-            terminated,
-            distance,
-            ..Episode::default()
-        }
-    }
-
-    #[test]
-    fn a_summary_counts_falls_and_averages_distances() {
-        let s = summarise(&[
-            episode(1.0, true, Some(1.0)),
-            episode(3.0, false, Some(3.0)),
-        ]);
-        assert_eq!(s.terminated, 1);
-        assert_eq!(
-            (s.return_mean, s.discounted_mean, s.steps_mean),
-            (2.0, 1.0, 15.0)
-        );
-        assert_eq!(s.distance_mean, Some(2.0));
-        let no_distance = summarise(&[episode(1.0, false, None)]);
-        assert_eq!(no_distance.distance_mean, None);
-    }
-
     #[test]
     fn evaluating_no_episodes_or_a_missing_bundle_is_an_error() {
         let missing = Path::new("/nonexistent/hopper.safetensors");

@@ -55,28 +55,44 @@ pub fn init_logging(format: LogFormat) {
     };
 }
 
-/// Resolves when the process gets SIGINT or SIGTERM.
-async fn termination_signal() {
-    let ctrl_c = tokio::signal::ctrl_c();
+/// Resolves when the process gets SIGINT or SIGTERM. The handlers are installed when this is
+/// called, not when the future is first polled, so that a signal sent as soon as the ready line
+/// is out drains the server rather than killing it.
+fn termination_signal() -> impl Future<Output = ()> + Send + 'static {
     #[cfg(unix)]
     {
-        let mut term = match tokio::signal::unix::signal(
-            tokio::signal::unix::SignalKind::terminate(),
-        ) {
-            Ok(term) => term,
-            Err(e) => {
-                tracing::error!(error = %e, "cannot listen for SIGTERM; only SIGINT stops the server");
-                let _ = ctrl_c.await;
-                return;
+        use tokio::signal::unix::{SignalKind, signal};
+        let interrupt = signal(SignalKind::interrupt());
+        let term = signal(SignalKind::terminate());
+        async move {
+            match (interrupt, term) {
+                (Ok(mut interrupt), Ok(mut term)) => {
+                    tokio::select! {
+                        _ = interrupt.recv() => {}
+                        _ = term.recv() => {}
+                    }
+                }
+                (interrupt, term) => {
+                    if let Err(e) = interrupt.as_ref().and(term.as_ref()) {
+                        tracing::error!(error = %e, "cannot listen for SIGINT or SIGTERM");
+                    }
+                    match (interrupt, term) {
+                        (Ok(mut interrupt), _) => {
+                            interrupt.recv().await;
+                        }
+                        (_, Ok(mut term)) => {
+                            term.recv().await;
+                        }
+                        _ => std::future::pending::<()>().await,
+                    }
+                }
             }
-        };
-        tokio::select! {
-            _ = ctrl_c => {}
-            _ = term.recv() => {}
         }
     }
     #[cfg(not(unix))]
-    let _ = ctrl_c.await;
+    async {
+        let _ = tokio::signal::ctrl_c().await;
+    }
 }
 
 /// While no policy is served (an empty, missing or unreadable bundle directory, as a volume not
@@ -87,13 +103,14 @@ const RETRY_EMPTY_BUNDLES: std::time::Duration = std::time::Duration::from_secs(
 /// the bundle directory ([`Registry::reload`]). New sessions get the new versions; open sessions
 /// keep the policy they opened with until they close; a broken new file keeps the old version.
 #[cfg(unix)]
-async fn reload_on_hangup(state: Arc<ServerState>, dir: std::path::PathBuf, health: Health) {
-    let mut hangup = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()) {
-        Ok(hangup) => hangup,
-        Err(e) => {
-            tracing::error!(error = %e, "cannot listen for SIGHUP; hot reload is off");
-            return;
-        }
+async fn reload_on_hangup(
+    state: Arc<ServerState>,
+    dir: std::path::PathBuf,
+    health: Health,
+    hangup: Option<tokio::signal::unix::Signal>,
+) {
+    let Some(mut hangup) = hangup else {
+        return;
     };
     let mut retry = tokio::time::interval(RETRY_EMPTY_BUNDLES);
     retry.tick().await;
@@ -183,6 +200,10 @@ pub struct Bound {
     tls: Option<tokio_rustls::TlsAcceptor>,
     auth: Option<auth::Tokens>,
     limits: transport::Limits,
+    /// SIGHUP's handler, installed before the ready line: a SIGHUP's default action would end
+    /// the process.
+    #[cfg(unix)]
+    hangup: Option<tokio::signal::unix::Signal>,
 }
 
 /// Reads what the settings name (token file, certificate, bundle directory) and binds the
@@ -252,6 +273,10 @@ pub async fn bind(config: &ServeConfig) -> anyhow::Result<Bound> {
         ),
         None => None,
     };
+    #[cfg(unix)]
+    let hangup = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup())
+        .inspect_err(|e| tracing::error!(error = %e, "cannot listen for SIGHUP; hot reload is off"))
+        .ok();
     Ok(Bound {
         grpc,
         metrics,
@@ -259,6 +284,8 @@ pub async fn bind(config: &ServeConfig) -> anyhow::Result<Bound> {
         tls,
         auth,
         limits,
+        #[cfg(unix)]
+        hangup,
     })
 }
 
@@ -266,6 +293,7 @@ pub async fn bind(config: &ServeConfig) -> anyhow::Result<Bound> {
 /// picks a free port; scripts and tests read that line).
 pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
     let bound = bind(&config).await?;
+    let shutdown = termination_signal();
     if let Some(metrics) = &bound.metrics {
         // Printed before the gRPC address, which scripts wait for as the ready line.
         println!("metrics on {}", metrics.local_addr()?);
@@ -276,7 +304,7 @@ pub async fn run(config: ServeConfig) -> anyhow::Result<()> {
     let addr = bound.grpc.local_addr()?;
     println!("listening on {addr}");
     tracing::info!(%addr, bundles = %config.bundles.display(), "listening");
-    serve(bound, &config, termination_signal()).await
+    serve(bound, &config, shutdown).await
 }
 
 /// The health service's view of the server: NOT_SERVING until bundles load and from shutdown on,
@@ -313,6 +341,8 @@ pub async fn serve(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> anyhow::Result<()> {
     let cancel = CancellationToken::new();
+    #[cfg(unix)]
+    let hangup = bound.hangup;
     let reporter = tonic_health::server::HealthReporter::new();
     let health_service = tonic_health::pb::health_server::HealthServer::new(
         health::ShutdownAwareHealth::new(reporter.clone(), cancel.clone()),
@@ -441,6 +471,7 @@ pub async fn serve(
         state.clone(),
         config.bundles.clone(),
         health.clone(),
+        hangup,
     ));
     #[cfg(not(unix))]
     let reloader = tokio::spawn(async {});

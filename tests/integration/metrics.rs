@@ -36,14 +36,19 @@ async fn with_metrics(bundles: &std::path::Path, args: &[&str]) -> (Server, Stri
         .chain(args.iter().copied())
         .collect();
     let server = Server::start(bundles, &args);
-    let addr = server
+    let addr = metrics_address(&server);
+    server.wait_serving().await;
+    (server, addr)
+}
+
+/// Where a server started with `--metrics-listen` serves its metrics.
+fn metrics_address(server: &Server) -> String {
+    server
         .preamble
         .iter()
         .find_map(|l| l.strip_prefix("metrics on "))
         .expect("the metrics address")
-        .to_string();
-    server.wait_serving().await;
-    (server, addr)
+        .to_string()
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -139,12 +144,7 @@ async fn metrics_count_steps_sessions_and_errors() {
 async fn readiness_is_zero_while_no_bundle_is_loaded_and_one_once_one_is() {
     let empty = tempfile::tempdir().unwrap();
     let server = Server::start(empty.path(), &["--metrics-listen", "127.0.0.1:0"]);
-    let addr = server
-        .preamble
-        .iter()
-        .find_map(|l| l.strip_prefix("metrics on "))
-        .expect("the metrics address")
-        .to_string();
+    let addr = metrics_address(&server);
     assert_eq!(sample(&scrape(&addr), "prac_serving"), 0.0);
     // A bundle arrives and SIGHUP loads it.
     let bundles = bundle_dir();
