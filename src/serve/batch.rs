@@ -17,7 +17,7 @@ use tokio::sync::oneshot;
 use tonic::Status;
 
 use super::arrival::Arrival;
-use super::session::{Session, SessionSlot, StepInput, apply_steps};
+use super::session::{Session, SessionSlot, StepInput, Taken, apply_steps};
 use super::workspace::{Workspace, Workspaces};
 use crate::policy::Policy;
 use crate::proto;
@@ -114,7 +114,7 @@ impl Batcher {
     /// Queues a step and waits for its answer, until `deadline`. A step is applied only if its
     /// answer is taken here: one the worker answers after the caller gave up (this future was
     /// dropped, or the deadline passed) is taken back.
-    pub(super) async fn step(
+    pub(super) async fn submit(
         &self,
         slot: Arc<SessionSlot>,
         request: proto::StepRequest,
@@ -258,10 +258,8 @@ impl Worker {
         for work in works {
             slots.push(work.slot);
             requests.push((work.request, work.arrival));
-            replies.push(work.reply);
+            replies.push(Some(work.reply));
         }
-        // Answered under the sessions' locks, so that a step taken back (its caller gave up) is
-        // never seen applied by another call (CloseSession, GetPlan) in between.
         let mut guards: Vec<_> = slots.iter().map(|slot| slot.lock()).collect();
         let inputs: Vec<StepInput<'_>> = requests
             .iter()
@@ -273,15 +271,22 @@ impl Worker {
             .collect();
         let Workspace { evaluator, scratch } = self.workspaces.get(&guards[0].policy);
         let mut sessions: Vec<&mut Session> = guards.iter_mut().map(|guard| &mut **guard).collect();
-        let reports = apply_steps(&mut sessions, &inputs, evaluator, scratch);
-        for ((reply, report), session) in replies.into_iter().zip(reports).zip(sessions) {
-            let answer: Answer = report
-                .map(|report| (session.response(&report), report.served))
-                .map_err(Status::from);
-            // The caller gave up while this step was replanned: nobody will see its answer.
-            if let Err(Ok((_, served))) = reply.send(answer) {
-                session.take_back(served);
-            }
-        }
+        apply_steps(
+            &mut sessions,
+            &inputs,
+            evaluator,
+            scratch,
+            |i, session, report| {
+                let answer: Answer = report
+                    .map(|report| (session.response(&report), report.served))
+                    .map_err(Status::from);
+                let reply = replies[i].take().expect("one answer per step");
+                // A caller that gave up meanwhile takes nothing: the step is taken back.
+                match reply.send(answer) {
+                    Ok(()) => Taken::Yes,
+                    Err(_) => Taken::No,
+                }
+            },
+        );
     }
 }

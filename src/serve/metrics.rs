@@ -181,7 +181,7 @@ impl Metrics {
     }
 
     /// One step served: `steps` is its policy's counter (`policy_steps`).
-    pub(super) fn step(&self, steps: &Counter, latency: Duration, answer: &StepAnswer) {
+    pub(super) fn step_answered(&self, steps: &Counter, latency: Duration, answer: &StepAnswer) {
         steps.inc();
         self.step_latency.observe(latency.as_secs_f64());
         self.forecast_length.observe(answer.forecast_length as f64);

@@ -192,7 +192,7 @@ impl ServerState {
 
     /// One step, counted in the metrics (latency, forecast length, plan breaks, errors). A step
     /// not applied by `deadline` is answered DEADLINE_EXCEEDED and changes nothing.
-    async fn step(
+    async fn serve_step(
         &self,
         request: proto::StepRequest,
         caller: Option<&str>,
@@ -208,9 +208,11 @@ impl ServerState {
                 return Err(status);
             }
         };
-        let result = self.step_in(&slot, request, deadline, arrival).await;
+        let result = self
+            .apply_or_submit(&slot, request, deadline, arrival)
+            .await;
         match &result {
-            Ok((response, _)) => self.metrics.step(
+            Ok((response, _)) => self.metrics.step_answered(
                 &slot.steps_served,
                 start.elapsed(),
                 &StepAnswer {
@@ -230,7 +232,7 @@ impl ServerState {
         })
     }
 
-    async fn step_in(
+    async fn apply_or_submit(
         &self,
         slot: &Arc<SessionSlot>,
         request: proto::StepRequest,
@@ -244,7 +246,9 @@ impl ServerState {
             Some(batcher) => match batcher.claim_alone() {
                 Some(alone) => Some(alone),
                 None => {
-                    let answer = batcher.step(slot.clone(), request, deadline, arrival).await;
+                    let answer = batcher
+                        .submit(slot.clone(), request, deadline, arrival)
+                        .await;
                     if answer.is_ok() {
                         self.metrics.replanned(ReplannedBy::BatchWorker);
                     }
@@ -348,7 +352,7 @@ impl Prac for PracService {
         let caller = self.state.caller(&request)?;
         // Returned at once, so the response reaches the transport: the step stays applied.
         self.state
-            .step(request.into_inner(), caller.as_deref(), deadline, arrival)
+            .serve_step(request.into_inner(), caller.as_deref(), deadline, arrival)
             .await
             .map(|answered| Response::new(answered.response))
     }
@@ -387,7 +391,7 @@ impl Prac for PracService {
                         // A stream's messages arrive in order: each is stamped as it is read.
                         let arrival = Arrival::next();
                         let answered = state
-                            .step(request, caller.as_deref(), deadline, arrival)
+                            .serve_step(request, caller.as_deref(), deadline, arrival)
                             .await;
                         let failed = answered.is_err();
                         let (response, applied) = match answered {
