@@ -8,16 +8,19 @@ mod floor_contacts;
 mod lander;
 mod pendulum;
 mod planar;
+mod robots;
 pub mod scene;
 mod spatial;
+mod walker;
 mod walker_base;
 
 pub use episode::EpisodeTotals;
 pub use lander::Lander;
 pub use pendulum::Pendulum;
-pub use planar::{Planar, PlanarState};
+pub use planar::{Planar, PlanarBody, PlanarState};
 pub use scene::{Part, Scene, Shape};
-pub use spatial::Spatial;
+pub use spatial::{Spatial, SpatialBody};
+pub use walker::{Body, Walker};
 
 /// What a domain is: sizes, bounds and episode length.
 #[derive(Clone, Debug, PartialEq)]

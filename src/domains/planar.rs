@@ -2,28 +2,29 @@
 //! hinge joints with limits driven by torques, and PyBullet's WalkerBase task interface
 //! (observation, reward terms, termination): Hopper, Walker2D and HalfCheetah.
 
-use rand::{Rng, SeedableRng};
+use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rapier2d::prelude::*;
 
 use super::floor_contacts::{self, BoundedShape, FloorContacts};
+use super::scene::Scene;
+use super::walker::{Body, Walker};
 use super::walker_base::{
-    self, BULLET_LIMIT_SPRING, BULLET_SUBSTEPS, Foot, GRAVITY, MORE, TARGET_X, WalkerEpisode,
-    bullet_drag, clip_observation,
+    self, BULLET_LIMIT_SPRING, Foot, GRAVITY, MORE, TARGET_X, bullet_drag, clip_observation,
 };
-use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, wrap_angle};
+use super::{Env, EnvError, EnvSpec, check_obs_len, robots, wrap_angle};
 
-const FLOOR_FRICTION: f32 = 0.64;
+pub(super) const FLOOR_FRICTION: f32 = 0.64;
 /// The floor's normal, as the floor contacts take it (the plane is x-y, y up).
 const UP: nalgebra::Vector3<f32> = nalgebra::Vector3::new(0.0, 1.0, 0.0);
 
 /// A capsule, endpoints at rest in world (x, z), `a` the end Bullet takes as the lowest point on
 /// a tie (a `fromto` geom's first). Capsules only collide: the links' masses are
 /// [`Inertial`]s.
-struct Capsule {
-    a: (f32, f32),
-    b: (f32, f32),
-    radius: f32,
+pub(super) struct Capsule {
+    pub(super) a: (f32, f32),
+    pub(super) b: (f32, f32),
+    pub(super) radius: f32,
 }
 
 /// A link's mass as PyBullet 3.2.7 simulates it (getDynamicsInfo; the fixture
@@ -31,22 +32,22 @@ struct Capsule {
 /// moment of inertia about the hinge axis y (kg m^2). PyBullet's MJCF importer puts the centre at
 /// a `fromto` geom's middle but at the body's origin for a geom placed by `pos` (HalfCheetah),
 /// and takes the inertia of the geom's bounding box.
-struct Inertial {
-    com: (f32, f32),
-    mass: f32,
-    inertia: f32,
+pub(super) struct Inertial {
+    pub(super) com: (f32, f32),
+    pub(super) mass: f32,
+    pub(super) inertia: f32,
 }
 
 /// A rigid link: its frame's origin, its capsules and its mass, at rest in world (x, z).
-struct LinkDef {
-    origin: (f32, f32),
-    capsules: Vec<Capsule>,
-    inertial: Inertial,
+pub(super) struct LinkDef {
+    pub(super) origin: (f32, f32),
+    pub(super) capsules: Vec<Capsule>,
+    pub(super) inertial: Inertial,
 }
 
 /// A one-capsule link (MuJoCo's `fromto` geoms) whose origin and centre of mass are the
 /// capsule's middle.
-fn link(a: (f32, f32), b: (f32, f32), radius: f32, mass: f32, inertia: f32) -> LinkDef {
+pub(super) fn link(a: (f32, f32), b: (f32, f32), radius: f32, mass: f32, inertia: f32) -> LinkDef {
     let middle = ((a.0 + b.0) / 2.0, (a.1 + b.1) / 2.0);
     LinkDef {
         origin: middle,
@@ -61,7 +62,7 @@ fn link(a: (f32, f32), b: (f32, f32), radius: f32, mass: f32, inertia: f32) -> L
 
 /// A capsule given as MuJoCo does with `pos`, `axisangle="0 1 0 angle"` and `size="radius
 /// half_length"`, in a body whose origin is `origin`.
-fn mj_capsule(
+pub(super) fn mj_capsule(
     origin: (f32, f32),
     pos: (f32, f32),
     angle: f32,
@@ -82,16 +83,16 @@ fn mj_capsule(
 /// A hinge between two links at a world anchor (at rest), with limits (rad, in the model's
 /// convention) and the torque of a unit action (PyBullet's power x gear). `axis` is +1 for a
 /// model hinge about -y (a counter-clockwise angle in the x-z plane), -1 for one about +y.
-struct JointDef {
-    parent: usize,
-    child: usize,
-    anchor: (f32, f32),
-    range: (f32, f32),
-    torque: f32,
-    axis: f32,
+pub(super) struct JointDef {
+    pub(super) parent: usize,
+    pub(super) child: usize,
+    pub(super) anchor: (f32, f32),
+    pub(super) range: (f32, f32),
+    pub(super) torque: f32,
+    pub(super) axis: f32,
 }
 
-fn hinge(
+pub(super) fn hinge(
     parent: usize,
     child: usize,
     anchor: (f32, f32),
@@ -110,7 +111,7 @@ fn hinge(
 }
 
 /// PyBullet's alive bonus: +1 while alive, -1 otherwise.
-enum Alive {
+pub(super) enum Alive {
     /// Torso z above this and |pitch| below 1 (Hopper, Walker2D); the episode ends when not alive.
     Upright { min_z: f32 },
     /// |pitch| below 1 and none of these feet entries touching the ground (HalfCheetah's shins
@@ -118,172 +119,17 @@ enum Alive {
     NoContact { forbidden: Vec<usize> },
 }
 
-struct RobotDef {
-    name: &'static str,
-    links: Vec<LinkDef>,
+pub(super) struct RobotDef {
+    pub(super) name: &'static str,
+    pub(super) links: Vec<LinkDef>,
     /// In order: every parent comes before its children.
-    joints: Vec<JointDef>,
+    pub(super) joints: Vec<JointDef>,
     /// Links whose ground contact is observed (PyBullet's foot_list order).
-    feet: Vec<Foot>,
-    alive: Alive,
+    pub(super) feet: Vec<Foot>,
+    pub(super) alive: Alive,
     /// Where the root's three joints (x and z slides, the pitch hinge) sit at rest, fixed to the
     /// torso: PyBullet's importer makes each a link there, and they count among the parts.
-    root: (f32, f32),
-}
-
-fn hopper() -> RobotDef {
-    let deg = std::f32::consts::PI / 180.0;
-    RobotDef {
-        name: "hopper",
-        links: vec![
-            link((0.0, 1.45), (0.0, 1.05), 0.05, 3.665192, 0.112644), // torso
-            link((0.0, 1.05), (0.0, 0.6), 0.05, 4.05789, 0.145171),   // thigh
-            link((0.0, 0.6), (0.0, 0.1), 0.04, 2.781357, 0.106897),   // leg
-            link((-0.13, 0.1), (0.26, 0.1), 0.06, 5.315574, 0.171915), // foot
-        ],
-        joints: vec![
-            hinge(0, 1, (0.0, 1.05), (-150.0 * deg, 0.0), 75.0, 1.0),
-            hinge(1, 2, (0.0, 0.6), (-150.0 * deg, 0.0), 75.0, 1.0),
-            hinge(2, 3, (0.0, 0.1), (-45.0 * deg, 45.0 * deg), 75.0, 1.0),
-        ],
-        feet: vec![Foot::new(3, 0.006543)],
-        alive: Alive::Upright { min_z: 0.8 },
-        root: (0.0, 0.0),
-    }
-}
-
-/// walker2d.xml: a torso on two hopper-like legs (gear 100, feet 30; PyBullet power 0.4).
-fn walker() -> RobotDef {
-    let deg = std::f32::consts::PI / 180.0;
-    let mut links = vec![link((0.0, 1.45), (0.0, 1.05), 0.05, 3.665192, 0.112644)]; // torso
-    let mut joints = Vec::new();
-    // Right leg (links 1-3), then left leg (links 4-6): the same shape, PyBullet's joint order.
-    for first in [1, 4] {
-        links.extend([
-            link((0.0, 1.05), (0.0, 0.6), 0.05, 4.05789, 0.145171), // thigh
-            link((0.0, 0.6), (0.0, 0.1), 0.04, 2.781357, 0.106897), // leg
-            link((0.0, 0.1), (0.2, 0.1), 0.06, 3.166725, 0.052779), // foot
-        ]);
-        joints.extend([
-            hinge(0, first, (0.0, 1.05), (-150.0 * deg, 0.0), 40.0, 1.0),
-            hinge(first, first + 1, (0.0, 0.6), (-150.0 * deg, 0.0), 40.0, 1.0),
-            hinge(
-                first + 1,
-                first + 2,
-                (0.0, 0.1),
-                (-45.0 * deg, 45.0 * deg),
-                12.0,
-                1.0,
-            ),
-        ]);
-    }
-    RobotDef {
-        name: "walker",
-        links,
-        joints,
-        feet: vec![Foot::new(3, 0.004899), Foot::new(6, 0.004899)],
-        alive: Alive::Upright { min_z: 0.8 },
-        root: (0.0, 0.0),
-    }
-}
-
-/// PyBullet's own half_cheetah.xml (pybullet_data, not gym's): a torso with a head, back and front
-/// legs of three links each, hinges about +y, feet of 10 kg, the front leg's wider ranges; every
-/// link's mass sits at its joint (the importer ignores the geoms' `pos`). PyBullet's power 0.9 x
-/// its power_coef (120, 90, 60, 140, 60, 30).
-fn cheetah() -> RobotDef {
-    let torso = (0.0, 0.7);
-    let at = |base: (f32, f32), offset: (f32, f32)| (base.0 + offset.0, base.1 + offset.1);
-    let (bthigh, fthigh) = (at(torso, (-0.5, 0.0)), at(torso, (0.5, 0.0)));
-    let bshin = at(bthigh, (0.16, -0.25));
-    let bfoot = at(bshin, (-0.28, -0.14));
-    let fshin = at(fthigh, (-0.14, -0.24));
-    let ffoot = at(fshin, (0.13, -0.18));
-    let r = 0.046;
-    let body = |origin: (f32, f32), capsules: Vec<Capsule>, mass: f32, inertia: f32| LinkDef {
-        origin,
-        capsules,
-        inertial: Inertial {
-            com: origin,
-            mass,
-            inertia,
-        },
-    };
-    RobotDef {
-        name: "cheetah",
-        links: vec![
-            body(
-                torso,
-                vec![
-                    Capsule {
-                        a: (-0.5, 0.7),
-                        b: (0.5, 0.7),
-                        radius: r,
-                    },
-                    mj_capsule(torso, (0.6, 0.1), 0.87, 0.15, r), // head
-                ],
-                9.457333,
-                1.564635,
-            ),
-            body(
-                bthigh,
-                vec![mj_capsule(bthigh, (0.1, -0.13), -3.8, 0.145, r)],
-                2.335527,
-                0.043289,
-            ),
-            body(
-                bshin,
-                vec![mj_capsule(bshin, (-0.14, -0.07), -2.03, 0.15, r)],
-                2.402003,
-                0.043925,
-            ),
-            body(
-                bfoot,
-                vec![mj_capsule(bfoot, (0.03, -0.097), -0.27, 0.094, r)],
-                10.0,
-                0.09446,
-            ),
-            body(
-                fthigh,
-                vec![mj_capsule(fthigh, (-0.07, -0.12), 0.52, 0.133, r)],
-                2.175984,
-                0.035076,
-            ),
-            body(
-                fshin,
-                vec![mj_capsule(fshin, (0.065, -0.09), -0.6, 0.106, r)],
-                1.817013,
-                0.023169,
-            ),
-            body(
-                ffoot,
-                vec![mj_capsule(ffoot, (0.045, -0.07), -0.6, 0.07, r)],
-                10.0,
-                0.085062,
-            ),
-        ],
-        joints: vec![
-            hinge(0, 1, bthigh, (-0.52, 1.05), 0.9 * 120.0, -1.0),
-            hinge(1, 2, bshin, (-0.785, 0.785), 0.9 * 90.0, -1.0),
-            hinge(2, 3, bfoot, (-0.4, 0.785), 0.9 * 60.0, -1.0),
-            hinge(0, 4, fthigh, (-1.5, 0.8), 0.9 * 140.0, -1.0),
-            hinge(4, 5, fshin, (-1.2, 1.1), 0.9 * 60.0, -1.0),
-            hinge(5, 6, ffoot, (-3.1, -0.3), 0.9 * 30.0, -1.0),
-        ],
-        // PyBullet's foot_list: ffoot, fshin, fthigh, bfoot, bshin, bthigh.
-        feet: vec![
-            Foot::new(6, 0.004989),
-            Foot::new(5, 0.006239),
-            Foot::new(4, 0.007272),
-            Foot::new(3, 0.005521),
-            Foot::new(2, 0.007904),
-            Foot::new(1, 0.008085),
-        ],
-        alive: Alive::NoContact {
-            forbidden: vec![1, 2, 4, 5],
-        },
-        root: torso,
-    }
+    pub(super) root: (f32, f32),
 }
 
 /// A planar walker's state in PyBullet's coordinates: the root's x and z slides and its pitch
@@ -304,16 +150,17 @@ pub struct PlanarState {
 }
 
 /// A planar walker (Hopper, Walker2D, HalfCheetah).
-pub struct Planar {
+pub type Planar = Walker<PlanarBody>;
+
+/// A planar walker's links in a rapier2d world.
+pub struct PlanarBody {
     robot: RobotDef,
-    spec: EnvSpec,
     world: PhysicsWorld,
     ground: ColliderHandle,
     bodies: Vec<RigidBodyHandle>,
     /// Per link, its capsules' colliders.
     colliders: Vec<Vec<ColliderHandle>>,
     initial_z: f32,
-    episode: WalkerEpisode,
     /// Joint positions (normalised) and speeds (x 0.1), PyBullet's `j`.
     joint_state: Vec<f32>,
     /// The robot's multibody (any of its joints names it).
@@ -330,15 +177,17 @@ pub struct Planar {
 
 impl Planar {
     pub fn hopper() -> Planar {
-        Planar::new(hopper())
+        Planar::of(robots::hopper())
     }
 
+    // Walker2D, the domain "walker"; not a constructor of the skeleton `Walker`.
+    #[allow(clippy::self_named_constructors)]
     pub fn walker() -> Planar {
-        Planar::new(walker())
+        Planar::of(robots::walker())
     }
 
     pub fn cheetah() -> Planar {
-        Planar::new(cheetah())
+        Planar::of(robots::cheetah())
     }
 
     /// The planar walker of that domain name.
@@ -351,7 +200,7 @@ impl Planar {
         }
     }
 
-    fn new(robot: RobotDef) -> Planar {
+    fn of(robot: RobotDef) -> Planar {
         let n = robot.joints.len();
         let obs_dim = 8 + 2 * n + robot.feet.len();
         let spec = EnvSpec {
@@ -366,30 +215,42 @@ impl Planar {
             control_period: 0.0165,
             engine: "rapier2d",
         };
-        let episode = WalkerEpisode::new(&spec, 1.0);
-        let mut env = Planar {
+        let mut body = PlanarBody {
             robot,
-            spec,
             world: PhysicsWorld::default(),
             ground: ColliderHandle::invalid(),
             bodies: Vec::new(),
             colliders: Vec::new(),
             initial_z: 0.0,
-            episode,
             joint_state: vec![0.0; 2 * n],
             multibody: None,
             floor_contacts: FloorContacts::new((0, 0), UP),
             seen_poses: Vec::new(),
             feet_contact: Vec::new(),
         };
-        env.build(&PlanarState {
+        body.build(&PlanarState {
             joints: vec![0.0; n],
             joint_velocities: vec![0.0; n],
             ..PlanarState::default()
         });
-        env
+        Walker::new(body, spec, 1.0)
     }
 
+    /// Starts an episode from PyBullet's state (as the reset would, initial height included) and
+    /// writes its observation (with the state's feet contacts). A state of the wrong shape or
+    /// with a non-finite value changes nothing.
+    pub fn set_state(&mut self, state: &PlanarState, obs: &mut [f32]) -> Result<(), EnvError> {
+        check_obs_len(self.spec(), obs)?;
+        self.body.check_state(state)?;
+        self.body.build(state);
+        // Where a reset's torso starts (the root does not move at reset).
+        self.body.initial_z = self.body.robot.links[0].inertial.com.1;
+        self.start(obs);
+        Ok(())
+    }
+}
+
+impl PlanarBody {
     /// A fresh world with the robot in the given state (its lengths checked by the caller).
     fn build(&mut self, state: &PlanarState) {
         let mut world = PhysicsWorld {
@@ -580,15 +441,6 @@ impl Planar {
         }
     }
 
-    /// Keeps the links' current poses as those the observation and reward read
-    /// (`seen_poses`).
-    fn remember_link_poses(&mut self) {
-        self.seen_poses.clear();
-        let bodies = &self.world.bodies;
-        self.seen_poses
-            .extend(self.bodies.iter().map(|&b| *bodies[b].position()));
-    }
-
     /// Gives every link's body the multibody's current speeds ([`walker_base::link_velocity`]).
     fn sync_link_velocities(&mut self) {
         let set = |body: &mut RigidBody, v: [f32; 3]| {
@@ -627,11 +479,8 @@ impl Planar {
         self.sync_link_velocities();
     }
 
-    /// Starts an episode from PyBullet's state (as the reset would, initial height included) and
-    /// writes its observation (with the state's feet contacts). A state of the wrong shape or
-    /// with a non-finite value changes nothing.
-    pub fn set_state(&mut self, state: &PlanarState, obs: &mut [f32]) -> Result<(), EnvError> {
-        check_obs_len(&self.spec, obs)?;
+    /// Checks a state's shape and values against this robot.
+    fn check_state(&self, state: &PlanarState) -> Result<(), EnvError> {
         let n = self.robot.joints.len();
         let feet = match state.feet_contact.len() {
             0 => 0,
@@ -647,7 +496,7 @@ impl Planar {
         for (what, values, expected) in fields {
             if values.len() != expected {
                 return Err(EnvError::StateLength {
-                    domain: self.spec.name,
+                    domain: self.robot.name,
                     what,
                     got: values.len(),
                     expected,
@@ -661,20 +510,7 @@ impl Planar {
                 });
             }
         }
-        self.build(state);
-        // Where a reset's torso starts (the root does not move at reset).
-        self.initial_z = self.robot.links[0].inertial.com.1;
-        self.episode.start(self.potential());
-        self.observe(obs);
         Ok(())
-    }
-
-    /// The robot's mass in kg.
-    pub fn total_mass(&self) -> f32 {
-        self.bodies
-            .iter()
-            .map(|&b| self.world.bodies[b].mass())
-            .sum()
     }
 
     fn torso(&self) -> &RigidBody {
@@ -699,11 +535,6 @@ impl Planar {
         }
         let parts = 3 + self.robot.links.len() + self.robot.joints.len() + 1;
         sum / parts as f32
-    }
-
-    /// PyBullet's potential: minus the distance to the target per control period.
-    fn potential(&self) -> f64 {
-        walker_base::potential((TARGET_X - self.body_x()).abs())
     }
 
     fn read_joints(&mut self) {
@@ -757,6 +588,31 @@ impl Planar {
         };
         (if alive { 1.0 } else { -1.0 }, ends)
     }
+}
+
+impl Body for PlanarBody {
+    fn reset(&mut self, rng: &mut ChaCha8Rng) {
+        let n = self.robot.joints.len();
+        self.build(&PlanarState {
+            joints: (0..n).map(|_| rng.random_range(-0.1..0.1)).collect(),
+            joint_velocities: vec![0.0; n],
+            ..PlanarState::default()
+        });
+        self.initial_z = self.robot.links[0].inertial.com.1;
+    }
+
+    fn substep(&mut self, action: &[f32]) {
+        self.bullet_substep(action);
+    }
+
+    /// Keeps the links' current poses as those the observation and reward read
+    /// (`seen_poses`).
+    fn remember_link_poses(&mut self) {
+        self.seen_poses.clear();
+        let bodies = &self.world.bodies;
+        self.seen_poses
+            .extend(self.bodies.iter().map(|&b| *bodies[b].position()));
+    }
 
     /// PyBullet's calc_state, written into obs: the joints as they are, the torso at its
     /// `seen_poses` one, the feet contacts of the step before; returns that (torso z, pitch),
@@ -789,14 +645,41 @@ impl Planar {
         clip_observation(obs);
         (pos.y, pitch)
     }
-}
 
-impl Env for Planar {
-    fn scene(&self) -> super::Scene {
+    fn alive(&self, z: f32, pitch: f32) -> (f64, bool) {
+        self.alive_bonus(z, pitch, &self.feet_contact)
+    }
+
+    /// PyBullet's potential: minus the distance to the target per control period.
+    fn potential(&self) -> f64 {
+        walker_base::potential((TARGET_X - self.body_x()).abs())
+    }
+
+    fn measure_feet_contact(&mut self) {
+        walker_base::measure_feet_contact!(self);
+    }
+
+    fn joint_state(&self) -> &[f32] {
+        &self.joint_state
+    }
+
+    fn forward_x(&self) -> f32 {
+        self.torso().center_of_mass().x
+    }
+
+    /// The robot's mass in kg.
+    fn total_mass(&self) -> f32 {
+        self.bodies
+            .iter()
+            .map(|&b| self.world.bodies[b].mass())
+            .sum()
+    }
+
+    fn scene(&self) -> Scene {
         let ground = self.ground;
         let shapes = super::scene::world_shapes(&self.world.colliders, |h| h == ground);
         let x = self.torso().center_of_mass().x;
-        super::Scene {
+        Scene {
             shapes,
             center: (f64::from(x), 1.0),
             width: 4.0,
@@ -804,11 +687,11 @@ impl Env for Planar {
         }
     }
 
-    fn trace(&self, predicted: &[f32]) -> Vec<(f64, f64)> {
-        let dt = self.spec.control_period as f32;
+    fn trace(&self, predicted: &[f32], spec: &EnvSpec) -> Vec<(f64, f64)> {
+        let dt = spec.control_period as f32;
         let mut x = self.torso().center_of_mass().x;
         predicted
-            .chunks_exact(self.spec.obs_dim)
+            .chunks_exact(spec.obs_dim)
             .map(|o| {
                 // "more" holds 0.3 vx; the speed after a step times the period approximates it.
                 x += o[3] / 0.3 * dt;
@@ -816,56 +699,10 @@ impl Env for Planar {
             })
             .collect()
     }
-
-    fn reward_terms(&self) -> &[(&'static str, f64)] {
-        self.episode.reward_terms()
-    }
-
-    /// The torso's x (the progress reward measures the parts' mean, [`Planar::body_x`]).
-    fn forward_position(&self) -> Option<f64> {
-        Some(f64::from(self.torso().center_of_mass().x))
-    }
-
-    fn spec(&self) -> &EnvSpec {
-        &self.spec
-    }
-
-    fn reset(&mut self, seed: u64, obs: &mut [f32]) -> Result<(), EnvError> {
-        check_obs_len(&self.spec, obs)?;
-        let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let n = self.robot.joints.len();
-        self.build(&PlanarState {
-            joints: (0..n).map(|_| rng.random_range(-0.1..0.1)).collect(),
-            joint_velocities: vec![0.0; n],
-            ..PlanarState::default()
-        });
-        self.initial_z = self.robot.links[0].inertial.com.1;
-        self.episode.start(self.potential());
-        self.observe(obs);
-        Ok(())
-    }
-
-    fn step(&mut self, action: &[f32], obs: &mut [f32]) -> Result<Transition, EnvError> {
-        check_obs_len(&self.spec, obs)?;
-        let a = self.episode.begin_step(&self.spec, action)?;
-        for _ in 1..BULLET_SUBSTEPS {
-            self.bullet_substep(&a);
-        }
-        // What the observation reads: the poses the last substep starts from.
-        self.remember_link_poses();
-        self.bullet_substep(&a);
-        let (z, pitch) = self.observe(obs);
-        let (alive, ends) = self.alive_bonus(z, pitch, &self.feet_contact);
-        let potential = self.potential();
-        walker_base::measure_feet_contact!(self);
-        Ok(self
-            .episode
-            .finish_step(a, alive, ends, potential, &self.joint_state))
-    }
 }
 
 #[cfg(test)]
-impl Planar {
+impl PlanarBody {
     /// The robot's mass (kg) and centre of mass (world x, 0, z; m).
     pub(super) fn mass_and_centre_for_test(&self) -> (f32, [f32; 3]) {
         let (mut mass, mut moment) = (0.0, Vector::ZERO);
@@ -909,8 +746,9 @@ impl Planar {
     /// torso's vertical speed.
     pub(super) fn drop_for_test(&mut self, seconds: f32) -> f32 {
         self.world.remove_collider(self.ground);
-        let zero = vec![0.0; self.spec.act_dim];
-        for _ in 0..(seconds / walker_base::CONTROL_PERIOD) as usize * BULLET_SUBSTEPS {
+        let zero = vec![0.0; self.robot.joints.len()];
+        for _ in 0..(seconds / walker_base::CONTROL_PERIOD) as usize * walker_base::BULLET_SUBSTEPS
+        {
             self.bullet_substep(&zero);
         }
         self.torso().linvel().y

@@ -6,24 +6,22 @@
 //! A MuJoCo body with several hinges (the Humanoid's hips, abdomen and shoulders) becomes a chain
 //! of one-hinge links, as PyBullet's MJCF importer does; the links in between carry no shape.
 
-use rand::{Rng, SeedableRng};
+use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rapier3d::glamx::EulerRot;
 use rapier3d::prelude::*;
 
 use super::floor_contacts::{self, BoundedShape, FloorContacts};
-use super::scene::{Part, Scene, Shape};
+use super::scene::{Scene, camera};
+use super::walker::{Body, Walker};
 use super::walker_base::{
-    self, BULLET_LIMIT_SPRING, BULLET_SUBSTEPS, CONTROL_PERIOD, Foot, GRAVITY, MORE, TARGET_X,
-    WalkerEpisode, bullet_drag, clip_observation,
+    self, BULLET_LIMIT_SPRING, CONTROL_PERIOD, Foot, GRAVITY, MORE, TARGET_X, bullet_drag,
+    clip_observation,
 };
-use super::{Env, EnvError, EnvSpec, Transition, check_obs_len, wrap_angle};
+use super::{EnvSpec, robots, wrap_angle};
 
-/// A limb whose centre is this far (metres) to one side of the torso is drawn in that side's
-/// colour.
-const SIDE: f32 = 0.03;
 /// PyBullet's stadium floor friction (0.8), multiplied by the geom's as Bullet combines them.
-const FLOOR_FRICTION: f32 = 0.8;
+pub(super) const FLOOR_FRICTION: f32 = 0.8;
 /// Links that only chain several hinges of one MuJoCo body: no shape, and a token mass (massless
 /// in PyBullet) so that rapier's multibody gives the link a well-defined inertia; 10 g slowed
 /// the Humanoid's hips and abdomen by 0.3-0.5% against PyBullet's under random torques.
@@ -34,7 +32,7 @@ const HINGE_ANGLE: usize = 3;
 const UP: nalgebra::Vector3<f32> = nalgebra::Vector3::new(0.0, 0.0, 1.0);
 
 #[derive(Clone, Copy)]
-enum Geom {
+pub(super) enum Geom {
     /// Endpoints and radius, in world coordinates at rest.
     Capsule(Vector, Vector, f32),
     /// Centre and radius, in world coordinates at rest.
@@ -48,13 +46,13 @@ enum Geom {
 /// at the body's origin when it is placed by `pos`, and takes inertias from the geoms' bounding
 /// boxes; several of its links fixed together (the Ant's torso and legs, the Humanoid's shin and
 /// foot) are one link here, with their masses summed.
-struct Inertial {
-    com: Vector,
-    mass: f32,
-    inertia: Vector,
+pub(super) struct Inertial {
+    pub(super) com: Vector,
+    pub(super) mass: f32,
+    pub(super) inertia: Vector,
 }
 
-fn inertial(com: Vector, mass: f32, inertia: (f32, f32, f32)) -> Inertial {
+pub(super) fn inertial(com: Vector, mass: f32, inertia: (f32, f32, f32)) -> Inertial {
     Inertial {
         com,
         mass,
@@ -63,64 +61,64 @@ fn inertial(com: Vector, mass: f32, inertia: (f32, f32, f32)) -> Inertial {
 }
 
 /// One link: at rest its frame sits at `origin` (its hinge's anchor), unrotated.
-struct LinkDef {
+pub(super) struct LinkDef {
     /// None for the root (the torso).
-    parent: Option<usize>,
-    origin: Vector,
+    pub(super) parent: Option<usize>,
+    pub(super) origin: Vector,
     /// The hinge axis (unit, the same in world, parent and link frames at rest); unused for the
     /// root.
-    axis: Vector,
+    pub(super) axis: Vector,
     /// Limits in radians and the torque of a unit action.
-    range: (f32, f32),
-    torque: f32,
+    pub(super) range: (f32, f32),
+    pub(super) torque: f32,
     /// The length of the model's hinge axis, which Bullet does not normalise (1 for the root).
-    axis_length: f32,
+    pub(super) axis_length: f32,
     /// Shapes, which only collide: the mass is `inertials`.
-    geoms: Vec<Geom>,
+    pub(super) geoms: Vec<Geom>,
     /// None for a link that only chains hinges of one MuJoCo body.
-    inertials: Vec<Inertial>,
+    pub(super) inertials: Vec<Inertial>,
 }
 
 impl LinkDef {
-    fn with_mass(mut self, inertials: Vec<Inertial>) -> LinkDef {
+    pub(super) fn with_mass(mut self, inertials: Vec<Inertial>) -> LinkDef {
         self.inertials = inertials;
         self
     }
 }
 
 /// PyBullet's alive bonus: `bonus` while the torso is above `min_z`, else -1 and the episode ends.
-struct Alive {
-    min_z: f32,
-    bonus: f64,
+pub(super) struct Alive {
+    pub(super) min_z: f32,
+    pub(super) bonus: f64,
 }
 
-struct RobotDef {
-    name: &'static str,
+pub(super) struct RobotDef {
+    pub(super) name: &'static str,
     /// Root first; every parent before its children. Links 1.. are the actuated joints in
     /// PyBullet's order.
-    links: Vec<LinkDef>,
+    pub(super) links: Vec<LinkDef>,
     /// Per observed foot (PyBullet's foot_list order): the link whose shapes count as that foot.
-    feet: Vec<Foot>,
-    alive: Alive,
+    pub(super) feet: Vec<Foot>,
+    pub(super) alive: Alive,
     /// PyBullet's initial_z: None takes the torso's height after reset.
-    initial_z: Option<f32>,
+    pub(super) initial_z: Option<f32>,
     /// Multiplies PyBullet's electricity and stall costs (Humanoid: 4.25).
-    cost_scale: f64,
+    pub(super) cost_scale: f64,
     /// Bullet's combined friction of the robot's geoms on the floor.
-    friction: f32,
+    pub(super) friction: f32,
     /// The links collide with each other, except with their ancestors (PyBullet's
     /// URDF_USE_SELF_COLLISION_EXCLUDE_ALL_PARENTS; only the Humanoid's geoms have conaffinity).
-    self_collision: bool,
+    pub(super) self_collision: bool,
 }
 
-fn v(x: f32, y: f32, z: f32) -> Vector {
+pub(super) fn v(x: f32, y: f32, z: f32) -> Vector {
     Vector::new(x, y, z)
 }
 
 /// A hinge link; `geoms` are given relative to `origin` (the MJCF body's frame when the joint
 /// sits at the body's origin).
 #[allow(clippy::too_many_arguments)]
-fn hinge(
+pub(super) fn hinge(
     parent: usize,
     origin: Vector,
     axis: Vector,
@@ -141,308 +139,22 @@ fn hinge(
     }
 }
 
-fn capsule(a: Vector, b: Vector, r: f32) -> Geom {
+pub(super) fn capsule(a: Vector, b: Vector, r: f32) -> Geom {
     Geom::Capsule(a, b, r)
 }
 
-/// ant.xml: a sphere torso at 0.75 m with four legs of hip (about z, +-40 deg) and ankle hinges;
-/// PyBullet's power 2.5 x 100 = 250 N m per unit action.
-fn ant() -> RobotDef {
-    let torso = v(0.0, 0.0, 0.75);
-    let r = 0.08;
-    let torque = 250.0;
-    let mut torso_geoms = vec![Geom::Sphere(torso, 0.25)];
-    let mut torso_mass = vec![inertial(torso, 65.449847, (1.636246, 1.636246, 1.636246))];
-    // A leg segment's box inertia, and a foot's, as PyBullet computes them.
-    let segment = (0.16394, 0.16394, 0.252698);
-    let foot = (0.526318, 0.526318, 0.922859);
-    let mut links = Vec::new();
-    // (leg direction in x-y, ankle axis, ankle range): front_left, front_right, left_back,
-    // right_back, in the file's order.
-    let legs = [
-        ((1.0, 1.0), v(-1.0, 1.0, 0.0), (30.0, 100.0)),
-        ((-1.0, 1.0), v(1.0, 1.0, 0.0), (-100.0, -30.0)),
-        ((-1.0, -1.0), v(-1.0, 1.0, 0.0), (-100.0, -30.0)),
-        ((1.0, -1.0), v(1.0, 1.0, 0.0), (30.0, 100.0)),
-    ];
-    let mut feet = Vec::new();
-    for ((dx, dy), ankle_axis, ankle_range) in legs {
-        let step = v(0.2 * dx, 0.2 * dy, 0.0);
-        let hip = torso + step;
-        let ankle = hip + step;
-        torso_geoms.push(capsule(torso, hip, r));
-        torso_mass.push(inertial(torso + step * 0.5, 7.83155, segment));
-        let hip_link = links.len() + 1;
-        links.push(
-            hinge(
-                0,
-                hip,
-                v(0.0, 0.0, 1.0),
-                (-40.0, 40.0),
-                torque,
-                vec![capsule(hip, ankle, r)],
-            )
-            .with_mass(vec![inertial(hip + step * 0.5, 7.83155, segment)]),
-        );
-        feet.push(Foot::new(links.len() + 1, 0.009364));
-        links.push(
-            hinge(
-                hip_link,
-                ankle,
-                ankle_axis,
-                ankle_range,
-                torque,
-                vec![capsule(ankle, ankle + step * 2.0, r)],
-            )
-            .with_mass(vec![inertial(ankle + step, 13.51844, foot)]),
-        );
-    }
-    let root = LinkDef {
-        parent: None,
-        origin: torso,
-        axis: Vector::ZERO,
-        axis_length: 1.0,
-        range: (0.0, 0.0),
-        torque: 0.0,
-        geoms: torso_geoms,
-        inertials: torso_mass,
-    };
-    links.insert(0, root);
-    RobotDef {
-        name: "ant",
-        links,
-        feet,
-        // 0.25 is the torso sphere's radius: it dies when it scrapes the ground.
-        alive: Alive {
-            min_z: 0.26,
-            bonus: 1.0,
-        },
-        initial_z: None,
-        cost_scale: 1.0,
-        friction: 1.5 * FLOOR_FRICTION,
-        self_collision: false,
-    }
-}
-
-/// humanoid_symmetric.xml with PyBullet's motor powers x 0.41. Positions are the model's, summed
-/// down the body tree (its near-identity body quaternions are dropped), from the torso's frame at
-/// (0.01, 0, 1.52): PyBullet puts the torso's centre of mass, its last geom's middle at (-0.01, 0,
-/// -0.12) in that frame, at the model's (0, 0, 1.4), so the whole body stands 0.12 m higher than
-/// MuJoCo's.
-fn humanoid() -> RobotDef {
-    let torso = v(0.01, 0.0, 1.52);
-    let at = |base: Vector, x: f32, y: f32, z: f32| base + v(x, y, z);
-    let power = 0.41;
-    let mut links = vec![LinkDef {
-        parent: None,
-        // The frame at the centre of mass, as Bullet's base: rapier moves a free root's frame
-        // origin by its speed, and from (0.01, 0, 1.52) the torso's centre rose against
-        // PyBullet's under the hips' torques (0.9 cm after 10 random steps, 0.08 cm here).
-        origin: at(torso, -0.01, 0.0, -0.12),
-        axis: Vector::ZERO,
-        axis_length: 1.0,
-        range: (0.0, 0.0),
-        torque: 0.0,
-        geoms: vec![
-            capsule(at(torso, 0.0, -0.07, 0.0), at(torso, 0.0, 0.07, 0.0), 0.07),
-            Geom::Sphere(at(torso, 0.0, 0.0, 0.19), 0.09),
-            capsule(
-                at(torso, -0.01, -0.06, -0.12),
-                at(torso, -0.01, 0.06, -0.12),
-                0.06,
-            ),
-        ],
-        inertials: vec![inertial(
-            at(torso, -0.01, 0.0, -0.12),
-            8.907462,
-            (0.281773, 0.221499, 0.132127),
-        )],
-    }];
-    let mut add = |link: LinkDef| {
-        links.push(link);
-        links.len() - 1
-    };
-    let lwaist = at(torso, -0.01, 0.0, -0.26);
-    let abdomen = at(lwaist, 0.0, 0.0, 0.065);
-    let abdomen_z = add(hinge(
-        0,
-        abdomen,
-        v(0.0, 0.0, 1.0),
-        (-45.0, 45.0),
-        100.0 * power,
-        vec![],
-    ));
-    let abdomen_y = add(hinge(
-        abdomen_z,
-        abdomen,
-        v(0.0, 1.0, 0.0),
-        (-75.0, 30.0),
-        100.0 * power,
-        vec![capsule(
-            at(lwaist, 0.0, -0.06, 0.0),
-            at(lwaist, 0.0, 0.06, 0.0),
-            0.06,
-        )],
-    )
-    .with_mass(vec![inertial(
-        lwaist,
-        2.261947,
-        (0.013572, 0.005429, 0.013572),
-    )]));
-    let pelvis = at(lwaist, 0.0, 0.0, -0.165);
-    let abdomen_x = add(hinge(
-        abdomen_y,
-        at(pelvis, 0.0, 0.0, 0.1),
-        v(1.0, 0.0, 0.0),
-        (-35.0, 35.0),
-        100.0 * power,
-        vec![capsule(
-            at(pelvis, -0.02, -0.07, 0.0),
-            at(pelvis, -0.02, 0.07, 0.0),
-            0.09,
-        )],
-    )
-    .with_mass(vec![inertial(
-        at(pelvis, -0.02, 0.0, 0.0),
-        6.616195,
-        (0.125487, 0.074542, 0.125487),
-    )]));
-    let mut feet = Vec::new();
-    // Right leg then left: the left one mirrors y and its hip x and z axes.
-    for side in [-1.0f32, 1.0] {
-        let thigh = at(pelvis, 0.0, 0.1 * side, -0.04);
-        let hip_x = add(hinge(
-            abdomen_x,
-            thigh,
-            v(-side, 0.0, 0.0),
-            (-25.0, 5.0),
-            100.0 * power,
-            vec![],
-        ));
-        let hip_z = add(hinge(
-            hip_x,
-            thigh,
-            v(0.0, 0.0, -side),
-            (-60.0, 35.0),
-            100.0 * power,
-            vec![],
-        ));
-        let hip_y = add(hinge(
-            hip_z,
-            thigh,
-            v(0.0, 1.0, 0.0),
-            (-120.0, 20.0),
-            300.0 * power,
-            vec![capsule(thigh, at(thigh, 0.0, -0.01 * side, -0.34), 0.06)],
-        )
-        .with_mass(vec![inertial(
-            at(thigh, 0.0, -0.005 * side, -0.17),
-            4.751751,
-            (0.13293, 0.131307, 0.033302),
-        )]));
-        let shin = at(thigh, 0.0, -0.01 * side, -0.403);
-        let foot = at(shin, 0.0, 0.0, -0.45);
-        let knee = add(hinge(
-            hip_y,
-            at(shin, 0.0, 0.0, 0.02),
-            v(0.0, -1.0, 0.0),
-            (-160.0, -2.0),
-            200.0 * power,
-            // The foot is fixed to the shin (no joint in the model).
-            vec![
-                capsule(shin, at(shin, 0.0, 0.0, -0.3), 0.049),
-                Geom::Sphere(at(foot, 0.0, 0.0, 0.1), 0.075),
-            ],
-        )
-        .with_mass(vec![
-            inertial(
-                at(shin, 0.0, 0.0, -0.15),
-                2.755696,
-                (0.059745, 0.059745, 0.014552),
-            ),
-            // At the foot body's origin: its sphere is placed by `pos`.
-            inertial(foot, 1.767146, (0.006627, 0.006627, 0.006627)),
-        ]));
-        feet.push(Foot::new(knee, 0.004598));
-    }
-    // Right arm then left: y mirrored, and the model's own axes per side.
-    for (side, shoulder1, shoulder2, elbow, range) in [
-        (
-            -1.0f32,
-            v(2.0, 1.0, 1.0),
-            v(0.0, -1.0, 1.0),
-            v(0.0, -1.0, 1.0),
-            (-85.0, 60.0),
-        ),
-        (
-            1.0,
-            v(2.0, -1.0, 1.0),
-            v(0.0, 1.0, 1.0),
-            v(0.0, -1.0, -1.0),
-            (-60.0, 85.0),
-        ),
-    ] {
-        let upper = at(torso, 0.0, 0.17 * side, 0.06);
-        let first = add(hinge(0, upper, shoulder1, range, 75.0 * power, vec![]));
-        let second = add(hinge(
-            first,
-            upper,
-            shoulder2,
-            range,
-            75.0 * power,
-            vec![capsule(upper, at(upper, 0.16, 0.16 * side, -0.16), 0.04)],
-        )
-        .with_mass(vec![inertial(
-            at(upper, 0.08, 0.08 * side, -0.08),
-            1.66108,
-            (0.028349, 0.028349, 0.028349),
-        )]));
-        let lower = at(upper, 0.18, 0.18 * side, -0.18);
-        add(hinge(
-            second,
-            lower,
-            elbow,
-            (-90.0, 50.0),
-            75.0 * power,
-            vec![
-                capsule(
-                    at(lower, 0.01, -0.01 * side, 0.01),
-                    at(lower, 0.17, -0.17 * side, 0.17),
-                    0.031,
-                ),
-                Geom::Sphere(at(lower, 0.18, -0.18 * side, 0.18), 0.04),
-            ],
-        )
-        // At the elbow: the body's last geom is the hand, placed by `pos`.
-        .with_mass(vec![inertial(lower, 1.22954, (0.01869, 0.01869, 0.01869))]));
-    }
-    RobotDef {
-        name: "humanoid",
-        links,
-        feet,
-        alive: Alive {
-            min_z: 0.78,
-            bonus: 2.0,
-        },
-        // PyBullet sets it to 0.8 for the Humanoid.
-        initial_z: Some(0.8),
-        cost_scale: 4.25,
-        friction: 0.8 * FLOOR_FRICTION,
-        self_collision: true,
-    }
-}
-
 /// A 3D walker (Ant, Humanoid).
-pub struct Spatial {
+pub type Spatial = Walker<SpatialBody>;
+
+/// A 3D walker's links in a rapier3d world.
+pub struct SpatialBody {
     robot: RobotDef,
-    spec: EnvSpec,
     world: PhysicsWorld,
     ground: ColliderHandle,
     bodies: Vec<RigidBodyHandle>,
     /// Per link, its colliders.
     colliders: Vec<Vec<ColliderHandle>>,
     initial_z: f32,
-    episode: WalkerEpisode,
     /// Joint positions (normalised) and speeds (x 0.1), PyBullet's `j`.
     joint_state: Vec<f32>,
     /// btMultiBody's drag on the links; off only for the free-floating momentum test.
@@ -468,14 +180,14 @@ pub struct Spatial {
 
 impl Spatial {
     pub fn ant() -> Spatial {
-        Spatial::new(ant())
+        Spatial::of(robots::ant())
     }
 
     pub fn humanoid() -> Spatial {
-        Spatial::new(humanoid())
+        Spatial::of(robots::humanoid())
     }
 
-    fn new(robot: RobotDef) -> Spatial {
+    fn of(robot: RobotDef) -> Spatial {
         let n = robot.links.len() - 1;
         let obs_dim = MORE + 2 * n + robot.feet.len();
         let spec = EnvSpec {
@@ -490,16 +202,14 @@ impl Spatial {
             control_period: f64::from(CONTROL_PERIOD),
             engine: "rapier3d",
         };
-        let episode = WalkerEpisode::new(&spec, robot.cost_scale);
-        let mut env = Spatial {
+        let cost_scale = robot.cost_scale;
+        let mut body = SpatialBody {
             robot,
-            spec,
             world: PhysicsWorld::default(),
             ground: ColliderHandle::invalid(),
             bodies: Vec::new(),
             colliders: Vec::new(),
             initial_z: 0.0,
-            episode,
             joint_state: vec![0.0; 2 * n],
             drag: true,
             multibody: None,
@@ -510,10 +220,12 @@ impl Spatial {
             seen_poses: Vec::new(),
             feet_contact: Vec::new(),
         };
-        env.build(&vec![0.0; n]);
-        env
+        body.build(&vec![0.0; n]);
+        Walker::new(body, spec, cost_scale)
     }
+}
 
+impl SpatialBody {
     /// A fresh world with the robot posed at the given joint angles.
     fn build(&mut self, angles: &[f32]) {
         let mut world = PhysicsWorld {
@@ -656,14 +368,6 @@ impl Spatial {
         self.remember_link_poses();
     }
 
-    /// Keeps the links' current poses as those the progress reward reads (`seen_poses`).
-    fn remember_link_poses(&mut self) {
-        self.seen_poses.clear();
-        let bodies = &self.world.bodies;
-        self.seen_poses
-            .extend(self.bodies.iter().map(|&b| *bodies[b].position()));
-    }
-
     /// Each hinge's angle before a substep, for [`Spatial::turn_joints_as_bullet`] after it.
     fn record_joint_angles(&mut self) {
         let world = &self.world;
@@ -772,14 +476,6 @@ impl Spatial {
         self.sync_link_velocities();
     }
 
-    /// The robot's mass in kg.
-    pub fn total_mass(&self) -> f32 {
-        self.bodies
-            .iter()
-            .map(|&b| self.world.bodies[b].mass())
-            .sum()
-    }
-
     fn torso(&self) -> &RigidBody {
         &self.world.bodies[self.bodies[0]]
     }
@@ -807,12 +503,6 @@ impl Spatial {
         }
         let mean = sum / parts as f32;
         v(mean.x, mean.y, self.torso().center_of_mass().z)
-    }
-
-    /// PyBullet's potential: minus the distance to the target per control period.
-    fn potential(&self) -> f64 {
-        let p = self.body_xyz();
-        walker_base::potential((TARGET_X - p.x).hypot(p.y))
     }
 
     /// Whether links `a` and `b` may touch (a test of the collision groups).
@@ -881,6 +571,34 @@ impl Spatial {
             super::body_mut(&mut self.world.bodies, parent).add_torque(-tau, true);
         }
     }
+}
+
+impl Body for SpatialBody {
+    fn reset(&mut self, rng: &mut ChaCha8Rng) {
+        // PyBullet draws U(-0.1, 0.1) per joint, inside the limits or not (the Ant's ankles
+        // start up to 40 degrees outside theirs and stay there until torques or contacts move
+        // them: the limits never push back).
+        let angles: Vec<f32> = (1..self.robot.links.len())
+            .map(|_| rng.random_range(-0.1f32..0.1))
+            .collect();
+        self.build(&angles);
+        self.initial_z = self
+            .robot
+            .initial_z
+            .unwrap_or_else(|| self.torso().center_of_mass().z);
+    }
+
+    fn substep(&mut self, action: &[f32]) {
+        self.bullet_substep(action);
+    }
+
+    /// Keeps the links' current poses as those the progress reward reads (`seen_poses`).
+    fn remember_link_poses(&mut self) {
+        self.seen_poses.clear();
+        let bodies = &self.world.bodies;
+        self.seen_poses
+            .extend(self.bodies.iter().map(|&b| *bodies[b].position()));
+    }
 
     /// PyBullet's calc_state, written into obs, the feet contacts those of the step before;
     /// returns (torso z, pitch).
@@ -909,155 +627,68 @@ impl Spatial {
         clip_observation(obs);
         (p.z, pitch)
     }
-}
 
-/// The fixed camera: an oblique view from the robot's right, y receding up and to the right.
-fn project(p: Vector) -> (f64, f64) {
-    let depth = 0.35;
-    (
-        f64::from(p.x + depth * p.y),
-        f64::from(p.z + 0.5 * depth * p.y),
-    )
-}
-
-impl Env for Spatial {
-    fn spec(&self) -> &EnvSpec {
-        &self.spec
-    }
-
-    fn scene(&self) -> Scene {
-        let centre = self.torso().translation();
-        let mut shapes = Vec::new();
-        // A 1 m floor grid around the robot.
-        let (x0, y0) = (centre.x.floor(), centre.y.floor());
-        for i in -3..=3 {
-            let d = i as f32;
-            shapes.push((
-                Part::Ground,
-                Shape::Polyline(vec![
-                    project(v(x0 + d, y0 - 3.0, 0.0)),
-                    project(v(x0 + d, y0 + 3.0, 0.0)),
-                ]),
-            ));
-            shapes.push((
-                Part::Ground,
-                Shape::Polyline(vec![
-                    project(v(x0 - 3.0, y0 + d, 0.0)),
-                    project(v(x0 + 3.0, y0 + d, 0.0)),
-                ]),
-            ));
-        }
-        // Far links first, so nearer ones are drawn over them; limbs coloured by the side of the
-        // torso they are on.
-        let torso_pose = *self.torso().position();
-        let mut parts: Vec<(f32, Part, Shape)> = Vec::new();
-        for handles in &self.colliders {
-            let side = |centre: Vector| match torso_pose.inverse_transform_point(centre).y {
-                y if y > SIDE => Part::Left,
-                y if y < -SIDE => Part::Right,
-                _ => Part::Body,
-            };
-            for &h in handles {
-                let collider = &self.world.colliders[h];
-                let pose = collider.position();
-                match collider.shape().as_typed_shape() {
-                    TypedShape::Capsule(c) => {
-                        let (a, b) = (
-                            pose.transform_point(c.segment.a),
-                            pose.transform_point(c.segment.b),
-                        );
-                        let shape = Shape::Capsule(project(a), project(b), f64::from(c.radius));
-                        parts.push((a.y.max(b.y), side((a + b) * 0.5), shape));
-                    }
-                    TypedShape::Ball(b) => {
-                        let c = pose.transform_point(Vector::ZERO);
-                        let shape = Shape::Circle(project(c), f64::from(b.radius));
-                        parts.push((c.y, side(c), shape));
-                    }
-                    _ => {}
-                }
-            }
-        }
-        parts.sort_by(|a, b| b.0.total_cmp(&a.0));
-        shapes.extend(parts.into_iter().map(|(_, part, s)| (part, s)));
-        let (cx, cy) = project(v(centre.x, centre.y, 0.0));
-        Scene {
-            shapes,
-            center: (cx, cy + 0.7),
-            width: 4.0,
-            height: 2.4,
-        }
-    }
-
-    fn trace(&self, predicted: &[f32]) -> Vec<(f64, f64)> {
-        let dt = CONTROL_PERIOD;
-        let torso = self.torso().center_of_mass();
-        let (mut x, mut y) = (torso.x, torso.y);
-        predicted
-            .chunks_exact(self.spec.obs_dim)
-            .map(|o| {
-                // "more" holds 0.3 x the yaw-rotated speed; heading stays near x for a walker.
-                x += o[3] / 0.3 * dt;
-                y += o[4] / 0.3 * dt;
-                project(v(x, y, o[0] + self.initial_z))
-            })
-            .collect()
-    }
-
-    fn reward_terms(&self) -> &[(&'static str, f64)] {
-        self.episode.reward_terms()
-    }
-
-    /// The torso's centre of mass x (the progress reward measures the parts' mean,
-    /// [`Spatial::body_xyz`]).
-    fn forward_position(&self) -> Option<f64> {
-        Some(f64::from(self.torso().center_of_mass().x))
-    }
-
-    fn reset(&mut self, seed: u64, obs: &mut [f32]) -> Result<(), EnvError> {
-        check_obs_len(&self.spec, obs)?;
-        let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        // PyBullet draws U(-0.1, 0.1) per joint, inside the limits or not (the Ant's ankles
-        // start up to 40 degrees outside theirs and stay there until torques or contacts move
-        // them: the limits never push back).
-        let angles: Vec<f32> = (1..self.robot.links.len())
-            .map(|_| rng.random_range(-0.1f32..0.1))
-            .collect();
-        self.build(&angles);
-        self.initial_z = self
-            .robot
-            .initial_z
-            .unwrap_or_else(|| self.torso().center_of_mass().z);
-        self.episode.start(self.potential());
-        self.observe(obs);
-        Ok(())
-    }
-
-    fn step(&mut self, action: &[f32], obs: &mut [f32]) -> Result<Transition, EnvError> {
-        check_obs_len(&self.spec, obs)?;
-        let a = self.episode.begin_step(&self.spec, action)?;
-        for _ in 1..BULLET_SUBSTEPS {
-            self.bullet_substep(&a);
-        }
-        // What the observation reads: the poses the last substep starts from.
-        self.remember_link_poses();
-        self.bullet_substep(&a);
-        let (z, _pitch) = self.observe(obs);
+    fn alive(&self, z: f32, _pitch: f32) -> (f64, bool) {
         let alive = if z > self.robot.alive.min_z {
             self.robot.alive.bonus
         } else {
             -1.0
         };
-        let potential = self.potential();
+        (alive, true)
+    }
+
+    /// PyBullet's potential: minus the distance to the target per control period.
+    fn potential(&self) -> f64 {
+        let p = self.body_xyz();
+        walker_base::potential((TARGET_X - p.x).hypot(p.y))
+    }
+
+    fn measure_feet_contact(&mut self) {
         walker_base::measure_feet_contact!(self);
-        Ok(self
-            .episode
-            .finish_step(a, alive, true, potential, &self.joint_state))
+    }
+
+    fn joint_state(&self) -> &[f32] {
+        &self.joint_state
+    }
+
+    fn forward_x(&self) -> f32 {
+        self.torso().center_of_mass().x
+    }
+
+    /// The robot's mass in kg.
+    fn total_mass(&self) -> f32 {
+        self.bodies
+            .iter()
+            .map(|&b| self.world.bodies[b].mass())
+            .sum()
+    }
+
+    fn scene(&self) -> Scene {
+        camera::scene(
+            &self.world.colliders,
+            &self.colliders,
+            self.torso().position(),
+        )
+    }
+
+    fn trace(&self, predicted: &[f32], spec: &EnvSpec) -> Vec<(f64, f64)> {
+        let dt = CONTROL_PERIOD;
+        let torso = self.torso().center_of_mass();
+        let (mut x, mut y) = (torso.x, torso.y);
+        predicted
+            .chunks_exact(spec.obs_dim)
+            .map(|o| {
+                // "more" holds 0.3 x the yaw-rotated speed; heading stays near x for a walker.
+                x += o[3] / 0.3 * dt;
+                y += o[4] / 0.3 * dt;
+                camera::project(v(x, y, o[0] + self.initial_z))
+            })
+            .collect()
     }
 }
 
 #[cfg(test)]
-impl Spatial {
+impl SpatialBody {
     /// The feet contacts the last step measured (the next observation shows them).
     pub(super) fn feet_contact_for_test(&self) -> &[f32] {
         &self.feet_contact
@@ -1067,8 +698,8 @@ impl Spatial {
     /// torso's vertical speed.
     pub(super) fn drop_for_test(&mut self, seconds: f32) -> f32 {
         self.world.remove_collider(self.ground);
-        let zero = vec![0.0; self.spec.act_dim];
-        let steps = (seconds / CONTROL_PERIOD) as usize * BULLET_SUBSTEPS;
+        let zero = vec![0.0; self.robot.links.len() - 1];
+        let steps = (seconds / CONTROL_PERIOD) as usize * walker_base::BULLET_SUBSTEPS;
         for _ in 0..steps {
             self.bullet_substep(&zero);
         }

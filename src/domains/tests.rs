@@ -329,8 +329,8 @@ fn falling_walkers_reach_bullets_terminal_speed() {
     let mut ant = Spatial::ant();
     ant.reset(0, &mut obs).unwrap();
     for (name, speed) in [
-        ("hopper", planar.drop_for_test(5.0)),
-        ("ant", ant.drop_for_test(5.0)),
+        ("hopper", planar.body.drop_for_test(5.0)),
+        ("ant", ant.body.drop_for_test(5.0)),
     ] {
         assert!(
             (speed + terminal).abs() < 0.02 * terminal,
@@ -362,20 +362,20 @@ fn the_humanoids_links_touch_each_other_but_not_their_ancestors_as_in_pybullet()
     let env = Spatial::humanoid();
     let (waist, pelvis, right_thigh, right_shin, left_thigh, left_shin) = (2, 3, 6, 7, 10, 11);
     let (right_forearm, left_forearm) = (14, 17);
-    assert!(env.links_collide(right_shin, left_shin));
-    assert!(env.links_collide(right_thigh, left_thigh));
-    assert!(env.links_collide(right_forearm, left_thigh));
-    assert!(env.links_collide(left_forearm, pelvis));
-    assert!(env.links_collide(right_forearm, waist));
-    assert!(!env.links_collide(right_shin, right_thigh), "a parent");
-    assert!(!env.links_collide(left_shin, pelvis), "an ancestor");
+    assert!(env.body.links_collide(right_shin, left_shin));
+    assert!(env.body.links_collide(right_thigh, left_thigh));
+    assert!(env.body.links_collide(right_forearm, left_thigh));
+    assert!(env.body.links_collide(left_forearm, pelvis));
+    assert!(env.body.links_collide(right_forearm, waist));
+    assert!(!env.body.links_collide(right_shin, right_thigh), "a parent");
+    assert!(!env.body.links_collide(left_shin, pelvis), "an ancestor");
     assert!(
-        !env.links_collide(right_forearm, 0),
+        !env.body.links_collide(right_forearm, 0),
         "the torso is every arm's ancestor"
     );
     // The Ant's geoms have no conaffinity in its file: its legs pass through each other.
     let ant = Spatial::ant();
-    assert!(!ant.links_collide(2, 4));
+    assert!(!ant.body.links_collide(2, 4));
 
     // Random episodes touch themselves now and then, as PyBullet's do (5 of 190 steps).
     let mut env = Spatial::humanoid();
@@ -387,7 +387,7 @@ fn the_humanoids_links_touch_each_other_but_not_their_ancestors_as_in_pybullet()
             let action: Vec<f32> = (0..17).map(|_| rng.random_range(-1.0..=1.0)).collect();
             let t = env.step(&action, &mut obs).unwrap();
             steps += 1;
-            touching += usize::from(env.self_contacts() > 0);
+            touching += usize::from(env.body.self_contacts() > 0);
             if t.terminated || t.truncated {
                 break;
             }
@@ -460,12 +460,12 @@ fn joint_torques_add_no_momentum_and_multibody_links_stay_jointed() {
         let spec = env.spec().clone();
         let mut obs = vec![0.0f32; spec.obs_dim];
         env.reset(1, &mut obs).unwrap();
-        env.float_freely_for_test();
+        env.body.float_freely_for_test();
         // Let the reset's self-contacts (the Humanoid's feet may start touching) settle first.
         for _ in 0..60 {
             env.step(&vec![0.0; spec.act_dim], &mut obs).unwrap();
         }
-        let (linear_before, angular_before) = env.momentum_for_test();
+        let (linear_before, angular_before) = env.body.momentum_for_test();
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         // The angular impulse the joints applied: what one-sided torques would have added.
         let mut impulse = 0.0;
@@ -473,13 +473,13 @@ fn joint_torques_add_no_momentum_and_multibody_links_stay_jointed() {
             let action: Vec<f32> = (0..spec.act_dim)
                 .map(|_| rng.random_range(-1.0..=1.0))
                 .collect();
-            impulse += env.torque_impulse_for_test(&action);
+            impulse += env.body.torque_impulse_for_test(&action);
             env.step(&action, &mut obs).unwrap();
         }
         // What is left is the multibody integrator's drift when joints run into their limits:
         // under 1% of that impulse for the Ant, 3-6% for the Humanoid, whose joints hit theirs
         // far more often (one-sided torques would add about all of it).
-        let (linear_after, angular_after) = env.momentum_for_test();
+        let (linear_after, angular_after) = env.body.momentum_for_test();
         let linear = (linear_after - linear_before).length();
         let angular = (angular_after - angular_before).length();
         assert!(impulse > 100.0, "{}: {impulse}", spec.name);
@@ -493,7 +493,7 @@ fn joint_torques_add_no_momentum_and_multibody_links_stay_jointed() {
             "{}: angular momentum {angular}, impulse {impulse}",
             spec.name
         );
-        let gap = env.largest_joint_gap_for_test();
+        let gap = env.body.largest_joint_gap_for_test();
         assert!(gap < 1e-3, "{}: a joint came apart by {gap} m", spec.name);
     }
 }
@@ -579,41 +579,41 @@ fn the_walkers_weigh_bend_and_push_as_in_pybullet() {
         ("hopper", {
             let e = Planar::hopper();
             (
-                e.mass_and_centre_for_test(),
-                e.joints_for_test(),
-                e.parts_for_test(),
+                e.body.mass_and_centre_for_test(),
+                e.body.joints_for_test(),
+                e.body.parts_for_test(),
             )
         }),
         ("walker", {
             let e = Planar::walker();
             (
-                e.mass_and_centre_for_test(),
-                e.joints_for_test(),
-                e.parts_for_test(),
+                e.body.mass_and_centre_for_test(),
+                e.body.joints_for_test(),
+                e.body.parts_for_test(),
             )
         }),
         ("cheetah", {
             let e = Planar::cheetah();
             (
-                e.mass_and_centre_for_test(),
-                e.joints_for_test(),
-                e.parts_for_test(),
+                e.body.mass_and_centre_for_test(),
+                e.body.joints_for_test(),
+                e.body.parts_for_test(),
             )
         }),
         ("ant", {
             let e = Spatial::ant();
             (
-                e.mass_and_centre_for_test(),
-                e.joints_for_test(),
-                e.parts_for_test(),
+                e.body.mass_and_centre_for_test(),
+                e.body.joints_for_test(),
+                e.body.parts_for_test(),
             )
         }),
         ("humanoid", {
             let e = Spatial::humanoid();
             (
-                e.mass_and_centre_for_test(),
-                e.joints_for_test(),
-                e.parts_for_test(),
+                e.body.mass_and_centre_for_test(),
+                e.body.joints_for_test(),
+                e.body.parts_for_test(),
             )
         }),
     ];
@@ -710,7 +710,9 @@ fn planar_walkers_step_from_pybullets_states_as_pybullet_does() {
             let (alive, their_alive) = term("alive");
             assert_eq!(alive, their_alive, "{name}: alive bonus after a step");
             let feet = walker_base::MORE + 2 * n;
-            let [body_x, ..] = env.scores_for_test(&obs[feet..], &floats(&case["actions"][0]));
+            let [body_x, ..] = env
+                .body
+                .scores_for_test(&obs[feet..], &floats(&case["actions"][0]));
             sums[4] += (body_x - step["body_x"].as_f64().unwrap()).abs() as f32;
             let joints: f32 = (0..n)
                 .map(|j| (obs[8 + 2 * j] - theirs[8 + 2 * j]).abs() / 2.0)
@@ -721,7 +723,7 @@ fn planar_walkers_step_from_pybullets_states_as_pybullet_does() {
             sums[3] += joints / n as f32;
             // The contacts the step measured, which the next observation shows.
             let now = floats(&step["obs_now"]);
-            for (ours, theirs) in env.feet_contact_for_test().iter().zip(&now[feet..]) {
+            for (ours, theirs) in env.body.feet_contact_for_test().iter().zip(&now[feet..]) {
                 contacts += 1;
                 contacts_agreeing += usize::from(ours == theirs);
             }
@@ -770,8 +772,9 @@ fn planar_walkers_set_to_pybullets_states_observe_and_score_as_pybullet() {
                     theirs[i]
                 );
             }
-            let [body_x, alive, power, at_limit] =
-                env.scores_for_test(&theirs[feet..], &floats(&case["action"]));
+            let [body_x, alive, power, at_limit] = env
+                .body
+                .scores_for_test(&theirs[feet..], &floats(&case["action"]));
             let expect = |what: &str, ours: f64, tolerance: f64| {
                 let theirs = case[what].as_f64().unwrap();
                 assert!(
@@ -821,7 +824,7 @@ fn planar_walkers_set_to_pybullets_states_observe_and_score_as_pybullet() {
 /// far past the limit the thigh is after each of `steps` steps.
 fn thigh_past_its_limit(past: f32, steps: usize) -> Vec<f32> {
     let mut env = Planar::named("hopper").unwrap();
-    let (lo, hi) = env.joints_for_test()[0].0;
+    let (lo, hi) = env.body.joints_for_test()[0].0;
     let state = PlanarState {
         root: [0.0, 2.0, 0.0],
         root_velocity: [0.0; 3],
@@ -964,13 +967,16 @@ fn bullets_bounds_give_the_feet_thresholds_measured_in_pybullet() {
     let robots = [
         (
             "hopper",
-            thresholds(hopper.feet(), &|k| hopper.bounded_threshold(k)),
+            thresholds(hopper.body.feet(), &|k| hopper.body.bounded_threshold(k)),
         ),
         (
             "walker",
-            thresholds(walker.feet(), &|k| walker.bounded_threshold(k)),
+            thresholds(walker.body.feet(), &|k| walker.body.bounded_threshold(k)),
         ),
-        ("ant", thresholds(ant.feet(), &|k| ant.bounded_threshold(k))),
+        (
+            "ant",
+            thresholds(ant.body.feet(), &|k| ant.body.bounded_threshold(k)),
+        ),
     ];
     for (name, feet) in robots {
         for (measured, bounded) in feet {
@@ -1101,9 +1107,16 @@ fn every_walker_observes_the_feet_contacts_one_step_late_as_pybullet() {
     // against PyBullet's own steps above).
     for name in ["hopper", "walker", "cheetah"] {
         let env = Planar::named(name).unwrap();
-        observes_feet_contacts_one_step_late(name, env, Planar::feet_contact_for_test);
+        observes_feet_contacts_one_step_late(name, env, |e: &Planar| {
+            e.body.feet_contact_for_test()
+        });
     }
-    observes_feet_contacts_one_step_late("ant", Spatial::ant(), Spatial::feet_contact_for_test);
+    observes_feet_contacts_one_step_late("ant", Spatial::ant(), |e: &Spatial| {
+        e.body.feet_contact_for_test()
+    });
     let humanoid = Spatial::humanoid();
-    observes_feet_contacts_one_step_late("humanoid", humanoid, Spatial::feet_contact_for_test);
+    observes_feet_contacts_one_step_late("humanoid", humanoid, |e: &Spatial| {
+        e.body.feet_contact_for_test()
+    });
 }
+

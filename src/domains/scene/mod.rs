@@ -3,6 +3,8 @@
 
 use rapier2d::prelude::*;
 
+pub(super) mod camera;
+
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Part {
     /// The robot (or lander, or pendulum); a 3D robot's torso and middle.
