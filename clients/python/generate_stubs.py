@@ -1,12 +1,18 @@
 """Regenerates the committed gRPC stubs in src/prac_client/_proto from ../../proto.
 
-Run with the pinned grpcio-tools (pip install -e '.[dev]'): python generate_stubs.py
+Run with the pinned grpcio-tools and mypy-protobuf (pip install -e '.[dev]'): python generate_stubs.py
 tests/test_stubs.py fails when the committed stubs differ from what this writes.
+
+grpcio-tools writes the modules and the messages' types (prac_pb2.pyi); mypy-protobuf's
+protoc-gen-mypy_grpc writes the service's (prac_pb2_grpc.pyi), which type each RPC's request
+and response for grpc.Channel and grpc.aio.Channel alike.
 """
 
 from __future__ import annotations
 
+import os
 import pathlib
+import shutil
 import sys
 
 HERE = pathlib.Path(__file__).resolve().parent
@@ -14,6 +20,16 @@ PROTO_ROOT = HERE.parent.parent / "proto"
 PROTO = "prac/v1/prac.proto"
 # The generated modules import each other as prac_client._proto.prac.v1.*.
 PACKAGE_PREFIX = "prac_client/_proto"
+GRPC_TYPES_PLUGIN = "protoc-gen-mypy_grpc"
+
+
+def grpc_types_plugin() -> str:
+    """mypy-protobuf's plugin: beside this Python (a virtualenv's bin/) or on PATH."""
+    search = os.pathsep.join([str(pathlib.Path(sys.executable).parent), os.environ.get("PATH", "")])
+    found = shutil.which(GRPC_TYPES_PLUGIN, path=search)
+    if found is None:
+        raise RuntimeError(f"{GRPC_TYPES_PLUGIN} not found: pip install -e '.[dev]' (mypy-protobuf)")
+    return found
 
 
 def generate(out_root: pathlib.Path) -> list[pathlib.Path]:
@@ -29,6 +45,8 @@ def generate(out_root: pathlib.Path) -> list[pathlib.Path]:
         f"--python_out={out_root}",
         f"--pyi_out={out_root}",
         f"--grpc_python_out={out_root}",
+        f"--plugin={GRPC_TYPES_PLUGIN}={grpc_types_plugin()}",
+        f"--mypy_grpc_out=quiet:{out_root}",
         f"{PACKAGE_PREFIX}/{PROTO}",
     ]
     if protoc.main(args) != 0:

@@ -194,10 +194,10 @@ def test_a_step_applied_before_its_answer_was_lost_is_not_sent_again(bundles: pa
     servers.append(server)
     with Client(server.address, timeout=10) as client:
         session = client.session("pendulum", **KEEP_ALL)
-        held = _resume.held_plan(client._call("Step", pb.StepRequest(session_id=session.id, observation=[0.1, 0.2, 0.3], new_episode=True)))
+        held = _resume.held_plan(client._call(client._stub.Step, pb.StepRequest(session_id=session.id, observation=[0.1, 0.2, 0.3], new_episode=True)))
         # The next step is applied, but its answer never arrives.
-        applied = client._call("Step", pb.StepRequest(session_id=session.id, observation=[0.2, 0.1, 0.0]))
-        now = client._call("GetPlan", pb.GetPlanRequest(session_id=session.id))
+        applied = client._call(client._stub.Step, pb.StepRequest(session_id=session.id, observation=[0.2, 0.1, 0.0]))
+        now = client._call(client._stub.GetPlan, pb.GetPlanRequest(session_id=session.id))
         assert _resume.applied(held, now)
         rebuilt = _resume.answer_from_plan(held, now)
         assert rebuilt == applied
@@ -250,7 +250,7 @@ def holder(replicas: list[Server], session_id: str) -> int:
     for k, r in enumerate(replicas):
         with Client(r.address, timeout=5) as direct:
             try:
-                direct._call("GetPlan", pb.GetPlanRequest(session_id=session_id))
+                direct._call(direct._stub.GetPlan, pb.GetPlanRequest(session_id=session_id))
                 return k
             except prac_client.SessionNotFound:
                 pass

@@ -1,32 +1,26 @@
-"""The synchronous client."""
+"""The synchronous client: the calls, blocking; their logic is in `_core`."""
 
 from __future__ import annotations
 
 import queue
 import threading
 import time
-from typing import Any, Iterator
+from typing import Iterator
 
 import grpc
-import numpy as np
-import numpy.typing as npt
 
-from prac_client import _resume, errors
-from prac_client._channel import CHANNEL_OPTIONS, Tls, credentials, metadata
-from prac_client._options import Growth, session_options
+from prac_client import _core, errors
+from prac_client._channel import CHANNEL_OPTIONS, Tls
+from prac_client._core import ArrayLike, Request, Response, T
+from prac_client._options import Growth
 from prac_client._proto.prac.v1 import prac_pb2 as pb
 from prac_client._proto.prac.v1 import prac_pb2_grpc as pb_grpc
-from prac_client.types import Plan, PolicyInfo, SessionOptions, StepResult
+from prac_client.types import Plan, PolicyInfo, StepResult
 
-ArrayLike = npt.ArrayLike
-
-
-def observation_list(observation: ArrayLike) -> list[float]:
-    """A flat list of float32 values (the wire type)."""
-    return [float(v) for v in np.asarray(observation, dtype=np.float32).ravel()]
+__all__ = ["Client", "Session"]
 
 
-class Client:
+class Client(_core.ClientBase):
     """A connection to a prac server.
 
     >>> with Client("127.0.0.1:50051") as client:
@@ -50,32 +44,24 @@ class Client:
         affinity: str | None = None,
         patience: float = 10.0,
     ) -> None:
-        creds = credentials(tls)
-        if creds is None:
+        super().__init__(target, token=token, tls=tls, timeout=timeout, affinity=affinity, patience=patience)
+        if self._credentials is None:
             self._channel = grpc.insecure_channel(target, options=CHANNEL_OPTIONS)
         else:
-            self._channel = grpc.secure_channel(target, creds, options=CHANNEL_OPTIONS)
-        self._stub: Any = pb_grpc.PracStub(self._channel)  # type: ignore[no-untyped-call]
-        self._metadata = metadata(token, affinity)
-        self.timeout = timeout
-        self.target = target
-        self.patience = patience
+            self._channel = grpc.secure_channel(target, self._credentials, options=CHANNEL_OPTIONS)
+        self._stub = pb_grpc.PracStub(self._channel)
 
-    def _call(self, rpc: str, request: Any) -> Any:
+    def _call(self, rpc: grpc.UnaryUnaryMultiCallable[Request, Response], request: Request) -> Response:
         try:
-            return getattr(self._stub, rpc)(request, timeout=self.timeout, metadata=self._metadata)
+            return rpc(request, timeout=self.timeout, metadata=self._metadata)
         except grpc.RpcError as e:
-            raise errors.from_rpc_error(e, rpc) from None
+            raise _core.rpc_error(e, request) from None
 
     def policies(self) -> list[PolicyInfo]:
-        response = self._call("ListPolicies", pb.ListPoliciesRequest())
-        return [PolicyInfo.from_proto(p) for p in response.policies]
+        return _core.policy_infos(self._call(self._stub.ListPolicies, pb.ListPoliciesRequest()))
 
     def policy(self, name: str) -> PolicyInfo:
-        for p in self.policies():
-            if p.name == name:
-                return p
-        raise errors.PolicyNotFound(f"unknown policy '{name}'")
+        return _core.find_policy(self.policies(), name)
 
     def session(
         self,
@@ -90,7 +76,8 @@ class Client:
     ) -> Session:
         """Opens a session (close it, or use it as a context manager). A seed means sampled
         actions unless sampled=False."""
-        options = session_options(
+        request = _core.open_request(
+            policy,
             epsilon=epsilon,
             epsilon_coef=epsilon_coef,
             growth=growth,
@@ -98,8 +85,7 @@ class Client:
             seed=seed,
             sampled=sampled,
         )
-        opened = self._call("OpenSession", pb.OpenSessionRequest(policy=policy, options=options))
-        return Session(self, opened, policy)
+        return Session(self, self._call(self._stub.OpenSession, request), policy)
 
     def close(self) -> None:
         self._channel.close()
@@ -111,81 +97,74 @@ class Client:
         self.close()
 
 
-_END = object()
-
-
 class _StepStream:
     """One StepStream call: requests go through a queue, responses come back in order."""
 
     def __init__(self, client: Client) -> None:
-        self.requests: queue.SimpleQueue[Any] = queue.SimpleQueue()
-        self.responses: Any = client._stub.StepStream(iter(self.requests.get, _END), metadata=client._metadata)
+        self._requests: queue.SimpleQueue[pb.StepRequest | None] = queue.SimpleQueue()
+        self._call = client._stub.StepStream(self._sent(), metadata=client._metadata)
+        self._responses = iter(self._call)
+
+    def _sent(self) -> Iterator[pb.StepRequest]:
+        while (request := self._requests.get()) is not None:
+            yield request
 
     def step(self, request: pb.StepRequest, timeout: float | None) -> pb.StepResponse:
-        self.requests.put(request)
-        timer = threading.Timer(timeout, self.responses.cancel) if timeout is not None else None
+        self._requests.put(request)
+        timer = threading.Timer(timeout, self._call.cancel) if timeout is not None else None
         if timer is not None:
             timer.start()
         try:
-            response: pb.StepResponse = next(self.responses)
+            return next(self._responses)
         except StopIteration:
             raise errors.ServerUnavailable("the server ended the step stream") from None
         except grpc.RpcError as e:
             if timer is not None and not timer.is_alive() and e.code() == grpc.StatusCode.CANCELLED:
                 raise errors.DeadlineExceeded(f"no answer within {timeout} s") from None
-            raise errors.from_rpc_error(e, "Step") from None
+            raise _core.rpc_error(e, request) from None
         finally:
             if timer is not None:
                 timer.cancel()
-        return response
 
     def close(self) -> None:
-        self.requests.put(_END)
+        self._requests.put(None)
 
 
-class Session:
+class Session(_core.SessionBase):
     """A session on one policy, holding the server-side plan. Steps go over one bidirectional
     stream, opened on the first step and again after an error."""
 
     def __init__(self, client: Client, opened: pb.OpenSessionResponse, policy: str) -> None:
+        super().__init__(opened, policy)
         self._client = client
-        self.id: str = opened.session_id
-        self.policy = PolicyInfo.from_proto(opened.policy)
-        self.options = SessionOptions.from_proto(opened.options)
         self._stream: _StepStream | None = None
-        self._new_episode = False
-        self.closed = False
-        self._policy_name = policy
-        self._options_in_force = _resume.options_in_force(opened.options)
-        # The plan the last answer committed: what a new server resumes from.
-        self._held: pb.Plan | None = None
-        self.resumes = 0
-        """Times the session was re-opened with its plan on a server that did not know it."""
 
-    def step(self, observation: ArrayLike, *, new_episode: bool = False) -> StepResult:
-        """Sends the observed state; returns the action to execute now and the forecast. If the
-        server lost the session or none answers, resumes it (see `Client`) and goes on."""
-        if self.closed:
-            raise errors.SessionNotFound(
-                f"session '{self.id}' was closed by this client; open a new one with client.session(...)"
-            )
-        observed = observation_list(observation)
-        new_episode = new_episode or self._new_episode
-        give_up = time.monotonic() + self._client.patience
+    def _run(self, flow: _core.Flow[T]) -> T:
+        """Makes the calls `flow` asks for, in turn, until it returns."""
+        reply: _core.Reply = None
+        failed: errors.PracError | None = None
         while True:
-            request = pb.StepRequest(session_id=self.id, observation=observed, new_episode=new_episode)
             try:
-                response = self._send(request)
-            except _resume.RESUMABLE:
-                if time.monotonic() > give_up:
-                    raise
-                recovered = self._recover()
-                if recovered is None:
-                    continue
-                response = recovered
-            self._held = _resume.held_plan(response)
-            self._new_episode = False
-            return StepResult.from_proto(response, self.policy.act_dim, self.policy.obs_dim)
+                io = flow.send(reply) if failed is None else flow.throw(failed)
+            except StopIteration as done:
+                result: T = done.value
+                return result
+            try:
+                reply, failed = self._do(io), None
+            except errors.PracError as e:
+                reply, failed = None, e
+
+    def _do(self, io: _core.Io) -> _core.Reply:
+        match io:
+            case _core.SendStep(request):
+                return self._send(request)
+            case _core.GetPlan(request):
+                return self._client._call(self._client._stub.GetPlan, request)
+            case _core.OpenSession(request):
+                return self._client._call(self._client._stub.OpenSession, request)
+            case _core.Pause(seconds):
+                time.sleep(seconds)
+                return None
 
     def _send(self, request: pb.StepRequest) -> pb.StepResponse:
         if self._stream is None:
@@ -198,70 +177,42 @@ class Session:
             self._stream = None
             raise
 
-    def _recover(self) -> pb.StepResponse | None:
-        """After a failed step: the step's answer if the server applied it after all (its plan
-        moved on), else None once a session exists to send it again to."""
-        try:
-            now = self._client._call("GetPlan", pb.GetPlanRequest(session_id=self.id))
-        except (errors.SessionNotFound, errors.SessionExpired):
-            self._reopen()
-            return None
-        except errors.ServerUnavailable:
-            time.sleep(_resume.RETRY_PAUSE)
-            return None
-        if _resume.applied(self._held, now):
-            return _resume.answer_from_plan(self._held, now)
-        return None
-
-    def _reopen(self) -> None:
-        request = pb.OpenSessionRequest(policy=self._policy_name, options=self._options_in_force)
-        if self._held is not None:
-            request.resume.CopyFrom(self._held)
-        try:
-            opened = self._client._call("OpenSession", request)
-        except errors.ServerUnavailable:
-            time.sleep(_resume.RETRY_PAUSE)
-            return
-        self.id = opened.session_id
-        self.resumes += 1
+    def step(self, observation: ArrayLike, *, new_episode: bool = False) -> StepResult:
+        """Sends the observed state; returns the action to execute now and the forecast. If the
+        server lost the session or none answers, resumes it (see `Client`) and goes on."""
+        return self._run(self._stepping(observation, new_episode, self._client.patience))
 
     def reset(self, observation: ArrayLike | None = None) -> StepResult | None:
         """Starts a new episode (Algorithm 1, line 4): the old plan is dropped and t restarts at
         0. With an observation, steps from it now; without, the next step starts the episode."""
-        if observation is None:
-            self._new_episode = True
-            return None
-        return self.step(observation, new_episode=True)
+        return self._run(self._resetting(observation, self._client.patience))
 
     def plan(self) -> Plan:
         """The committed plan now (empty before the first step)."""
-        p = self._client._call("GetPlan", pb.GetPlanRequest(session_id=self.id))
-        return Plan.from_proto(p, self.policy.act_dim, self.policy.obs_dim)
+        return self._as_plan(self._client._call(self._client._stub.GetPlan, self._plan_request()))
 
     def watch(self) -> Iterator[Plan]:
         """The plan now, then every change of it, until the session ends (closing the
         iterator cancels the call)."""
-        call = self._client._stub.WatchPlan(
-            pb.WatchPlanRequest(session_id=self.id), metadata=self._client._metadata
-        )
+        request = self._watch_request()
+        call = self._client._stub.WatchPlan(request, metadata=self._client._metadata)
         try:
             for p in call:
-                yield Plan.from_proto(p, self.policy.act_dim, self.policy.obs_dim)
+                yield self._as_plan(p)
         except grpc.RpcError as e:
-            raise errors.from_rpc_error(e, "WatchPlan") from None
+            raise _core.rpc_error(e, request) from None
         finally:
-            call.cancel()
+            call.cancel()  # type: ignore[no-untyped-call]  # grpc-stubs leaves RpcContext.cancel untyped
 
     def close(self) -> int:
         """Closes the session; returns the steps it served."""
         if self._stream is not None:
             self._stream.close()
             self._stream = None
-        if self.closed:
+        request = self._close_request()
+        if request is None:
             return 0
-        self.closed = True
-        response = self._client._call("CloseSession", pb.CloseSessionRequest(session_id=self.id))
-        return int(response.steps)
+        return int(self._client._call(self._client._stub.CloseSession, request).steps)
 
     def __enter__(self) -> Session:
         return self

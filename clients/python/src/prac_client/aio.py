@@ -12,20 +12,19 @@ from typing import Any, AsyncIterator, Generator
 
 import grpc
 import grpc.aio
-from grpc.aio import EOF  # type: ignore[attr-defined]
 
-from prac_client import _resume, errors
-from prac_client._channel import CHANNEL_OPTIONS, Tls, credentials, metadata
-from prac_client._client import ArrayLike, observation_list
-from prac_client._options import Growth, session_options
+from prac_client import _core, errors
+from prac_client._channel import CHANNEL_OPTIONS, Tls
+from prac_client._core import ArrayLike, Request, Response, T
+from prac_client._options import Growth
 from prac_client._proto.prac.v1 import prac_pb2 as pb
 from prac_client._proto.prac.v1 import prac_pb2_grpc as pb_grpc
-from prac_client.types import Plan, PolicyInfo, SessionOptions, StepResult
+from prac_client.types import Plan, PolicyInfo, StepResult
 
 __all__ = ["Client", "Session"]
 
 
-class Client:
+class Client(_core.ClientBase):
     """The asyncio twin of `prac_client.Client`, with the same options (token, tls, timeout,
     affinity, patience) and sessions that resume the same way."""
 
@@ -39,26 +38,21 @@ class Client:
         affinity: str | None = None,
         patience: float = 10.0,
     ) -> None:
-        creds = credentials(tls)
-        if creds is None:
+        super().__init__(target, token=token, tls=tls, timeout=timeout, affinity=affinity, patience=patience)
+        if self._credentials is None:
             self._channel = grpc.aio.insecure_channel(target, options=CHANNEL_OPTIONS)
         else:
-            self._channel = grpc.aio.secure_channel(target, creds, options=CHANNEL_OPTIONS)
-        self._stub: Any = pb_grpc.PracStub(self._channel)  # type: ignore[no-untyped-call]
-        self._metadata = metadata(token, affinity)
-        self.timeout = timeout
-        self.target = target
-        self.patience = patience
+            self._channel = grpc.aio.secure_channel(target, self._credentials, options=CHANNEL_OPTIONS)
+        self._stub = pb_grpc.PracStub(self._channel)
 
-    async def _call(self, rpc: str, request: Any) -> Any:
+    async def _call(self, rpc: grpc.aio.UnaryUnaryMultiCallable[Request, Response], request: Request) -> Response:
         try:
-            return await getattr(self._stub, rpc)(request, timeout=self.timeout, metadata=self._metadata)
+            return await rpc(request, timeout=self.timeout, metadata=self._metadata)
         except grpc.RpcError as e:
-            raise errors.from_rpc_error(e, rpc) from None
+            raise _core.rpc_error(e, request) from None
 
     async def policies(self) -> list[PolicyInfo]:
-        response = await self._call("ListPolicies", pb.ListPoliciesRequest())
-        return [PolicyInfo.from_proto(p) for p in response.policies]
+        return _core.policy_infos(await self._call(self._stub.ListPolicies, pb.ListPoliciesRequest()))
 
     def session(
         self,
@@ -72,7 +66,8 @@ class Client:
         sampled: bool | None = None,
     ) -> _Opening:
         """`await client.session(...)` or `async with client.session(...) as session`."""
-        options = session_options(
+        request = _core.open_request(
+            policy,
             epsilon=epsilon,
             epsilon_coef=epsilon_coef,
             growth=growth,
@@ -80,7 +75,7 @@ class Client:
             seed=seed,
             sampled=sampled,
         )
-        return _Opening(self, pb.OpenSessionRequest(policy=policy, options=options))
+        return _Opening(self, request)
 
     async def close(self) -> None:
         await self._channel.close(grace=None)
@@ -101,7 +96,7 @@ class _Opening:
         self._session: Session | None = None
 
     async def _open(self) -> Session:
-        opened = await self._client._call("OpenSession", self._request)
+        opened = await self._client._call(self._client._stub.OpenSession, self._request)
         return Session(self._client, opened, self._request.policy)
 
     def __await__(self) -> Generator[Any, None, Session]:
@@ -119,85 +114,53 @@ class _Opening:
                 pass
 
 
-class Session:
+class Session(_core.SessionBase):
+    """The asyncio twin of `prac_client.Session`."""
+
     def __init__(self, client: Client, opened: pb.OpenSessionResponse, policy: str) -> None:
+        super().__init__(opened, policy)
         self._client = client
-        self.id: str = opened.session_id
-        self.policy = PolicyInfo.from_proto(opened.policy)
-        self.options = SessionOptions.from_proto(opened.options)
-        self._stream: Any = None
-        self._new_episode = False
-        self.closed = False
-        self._policy_name = policy
-        self._options_in_force = _resume.options_in_force(opened.options)
-        self._held: pb.Plan | None = None
-        self.resumes = 0
-        """Times the session was re-opened with its plan on a server that did not know it."""
+        self._stream: grpc.aio.StreamStreamCall[pb.StepRequest, pb.StepResponse] | None = None
 
-    async def step(self, observation: ArrayLike, *, new_episode: bool = False) -> StepResult:
-        """As `prac_client.Session.step`, resuming the same way."""
-        if self.closed:
-            raise errors.SessionNotFound(
-                f"session '{self.id}' was closed by this client; open a new one with client.session(...)"
-            )
-        observed = observation_list(observation)
-        new_episode = new_episode or self._new_episode
-        loop = asyncio.get_running_loop()
-        give_up = loop.time() + self._client.patience
+    async def _run(self, flow: _core.Flow[T]) -> T:
+        """Makes the calls `flow` asks for, in turn, until it returns."""
+        reply: _core.Reply = None
+        failed: errors.PracError | None = None
         while True:
-            request = pb.StepRequest(session_id=self.id, observation=observed, new_episode=new_episode)
             try:
-                response = await self._send(request)
-            except _resume.RESUMABLE:
-                if loop.time() > give_up:
-                    raise
-                recovered = await self._recover()
-                if recovered is None:
-                    continue
-                response = recovered
-            self._held = _resume.held_plan(response)
-            self._new_episode = False
-            return StepResult.from_proto(response, self.policy.act_dim, self.policy.obs_dim)
+                io = flow.send(reply) if failed is None else flow.throw(failed)
+            except StopIteration as done:
+                result: T = done.value
+                return result
+            try:
+                reply, failed = await self._do(io), None
+            except errors.PracError as e:
+                reply, failed = None, e
 
-    async def _recover(self) -> pb.StepResponse | None:
-        try:
-            now = await self._client._call("GetPlan", pb.GetPlanRequest(session_id=self.id))
-        except (errors.SessionNotFound, errors.SessionExpired):
-            await self._reopen()
-            return None
-        except errors.ServerUnavailable:
-            await asyncio.sleep(_resume.RETRY_PAUSE)
-            return None
-        if _resume.applied(self._held, now):
-            return _resume.answer_from_plan(self._held, now)
-        return None
+    async def _do(self, io: _core.Io) -> _core.Reply:
+        match io:
+            case _core.SendStep(request):
+                return await self._send(request)
+            case _core.GetPlan(request):
+                return await self._client._call(self._client._stub.GetPlan, request)
+            case _core.OpenSession(request):
+                return await self._client._call(self._client._stub.OpenSession, request)
+            case _core.Pause(seconds):
+                await asyncio.sleep(seconds)
+                return None
 
-    async def _reopen(self) -> None:
-        request = pb.OpenSessionRequest(policy=self._policy_name, options=self._options_in_force)
-        if self._held is not None:
-            request.resume.CopyFrom(self._held)
-        try:
-            opened = await self._client._call("OpenSession", request)
-        except errors.ServerUnavailable:
-            await asyncio.sleep(_resume.RETRY_PAUSE)
-            return
-        self.id = opened.session_id
-        self.resumes += 1
-
-    async def _send(self, request: pb.StepRequest) -> Any:
+    async def _send(self, request: pb.StepRequest) -> pb.StepResponse:
         if self._stream is None:
-            self._stream = self._client._stub.StepStream(metadata=self._client._metadata)
+            self._stream = self._client._stub.StepStream(None, metadata=self._client._metadata)
         stream = self._stream
         try:
             await stream.write(request)
             response = await asyncio.wait_for(stream.read(), self._client.timeout)
-            if response is EOF:
-                code = await stream.code()
-                details = await stream.details()
-                raise errors.from_rpc_error(_Status(code, details), "Step")
+            if not isinstance(response, pb.StepResponse):  # grpc.aio.EOF: the stream ended
+                raise _core.rpc_error(_Status(await stream.code(), await stream.details()), request)
         except grpc.RpcError as e:
             self._drop_stream()
-            raise errors.from_rpc_error(e, "Step") from None
+            raise _core.rpc_error(e, request) from None
         except asyncio.TimeoutError:
             self._drop_stream()
             raise errors.DeadlineExceeded(f"no answer within {self._client.timeout} s") from None
@@ -211,23 +174,24 @@ class Session:
             self._stream.cancel()
             self._stream = None
 
+    async def step(self, observation: ArrayLike, *, new_episode: bool = False) -> StepResult:
+        """As `prac_client.Session.step`, resuming the same way."""
+        return await self._run(self._stepping(observation, new_episode, self._client.patience))
+
     async def reset(self, observation: ArrayLike | None = None) -> StepResult | None:
-        if observation is None:
-            self._new_episode = True
-            return None
-        return await self.step(observation, new_episode=True)
+        return await self._run(self._resetting(observation, self._client.patience))
 
     async def plan(self) -> Plan:
-        p = await self._client._call("GetPlan", pb.GetPlanRequest(session_id=self.id))
-        return Plan.from_proto(p, self.policy.act_dim, self.policy.obs_dim)
+        return self._as_plan(await self._client._call(self._client._stub.GetPlan, self._plan_request()))
 
     async def watch(self) -> AsyncIterator[Plan]:
-        call = self._client._stub.WatchPlan(pb.WatchPlanRequest(session_id=self.id), metadata=self._client._metadata)
+        request = self._watch_request()
+        call = self._client._stub.WatchPlan(request, metadata=self._client._metadata)
         try:
             async for p in call:
-                yield Plan.from_proto(p, self.policy.act_dim, self.policy.obs_dim)
+                yield self._as_plan(p)
         except grpc.RpcError as e:
-            raise errors.from_rpc_error(e, "WatchPlan") from None
+            raise _core.rpc_error(e, request) from None
         finally:
             call.cancel()
 
@@ -238,11 +202,10 @@ class Session:
             except grpc.RpcError:
                 pass
             self._drop_stream()
-        if self.closed:
+        request = self._close_request()
+        if request is None:
             return 0
-        self.closed = True
-        response = await self._client._call("CloseSession", pb.CloseSessionRequest(session_id=self.id))
-        return int(response.steps)
+        return int((await self._client._call(self._client._stub.CloseSession, request)).steps)
 
     async def __aenter__(self) -> Session:
         return self

@@ -23,114 +23,16 @@ no value scale (give absolute epsilons), and --env and --value-scale are refused
 from __future__ import annotations
 
 import argparse
-import io
-import json
 import pathlib
 import sys
-import zipfile
-from typing import Any, Mapping
-
-import numpy as np
-import numpy.typing as npt
 
 from prac_client import vecnormalize
 from prac_client.bundle import from_sb3_state_dict, write_bundle
+from prac_client.sb3 import algorithm_of, gymnasium_id, load_sb3_zip, sb3_policy, spaces_from_sb3_data, zip_path
+from prac_client.value_scale import measure
 
-
-def _array(text: Any) -> npt.NDArray[np.float32]:
-    """Parses numpy's str() of an array, e.g. '[-1. -1. -2.]', as SB3 stores it in 'data'."""
-    if isinstance(text, list):
-        return np.asarray(text, dtype=np.float32)
-    cleaned = str(text).replace("[", " ").replace("]", " ").replace("\n", " ")
-    if "..." in cleaned:
-        raise ValueError(f"cannot read a summarised array from SB3 data: {text!r}")
-    return np.asarray([float(v) for v in cleaned.split()], dtype=np.float32)
-
-
-def spaces_from_sb3_data(data: Mapping[str, Any]) -> dict[str, Any]:
-    """obs_dim, action bounds, gamma and activation from SB3's `data` JSON."""
-    obs = data["observation_space"]
-    act = data["action_space"]
-    shape = obs.get("_shape") or obs.get("shape")
-    if shape is None or len(shape) != 1:
-        raise ValueError(f"observation space shape {shape}: only flat Box observations are supported")
-    low, high = _array(act["low"]), _array(act["high"])
-    act_shape = act.get("_shape") or act.get("shape") or [low.size]
-    low = np.broadcast_to(low, tuple(act_shape)).astype(np.float32)
-    high = np.broadcast_to(high, tuple(act_shape)).astype(np.float32)
-    activation = "relu"
-    kwargs = data.get("policy_kwargs") or {}
-    fn = str(kwargs.get("activation_fn", "ReLU")) if isinstance(kwargs, dict) else "ReLU"
-    if "Tanh" in fn:
-        activation = "tanh"
-    elif "ReLU" not in fn:
-        raise ValueError(f"activation {fn}: prac bundles support ReLU and Tanh")
-    return {
-        "obs_dim": int(shape[0]),
-        "action_low": low,
-        "action_high": high,
-        "gamma": float(data.get("gamma", 0.99)),
-        "activation": activation,
-        "steps": int(data.get("num_timesteps", 0)),
-        "seed": int(data.get("seed") or 0),
-    }
-
-
-def zip_path(path: str | pathlib.Path) -> pathlib.Path:
-    """The checkpoint's file: PATH, or PATH.zip as SB3's load accepts it (also where PATH is the
-    rl-zoo's folder of the same name beside the zip)."""
-    path = pathlib.Path(path)
-    if not path.is_file() and path.suffix != ".zip" and path.with_name(path.name + ".zip").is_file():
-        return path.with_name(path.name + ".zip")
-    return path
-
-
-def algorithm_of(data: Mapping[str, Any], state: Mapping[str, Any]) -> tuple[str, str, float | None]:
-    """(algorithm, actor kind, mean clip) of an SB3 checkpoint, from its policy class's module
-    and the weights; anything but SAC, TD3 and DDPG is a ValueError with one line."""
-    policy_class = data.get("policy_class")
-    module = str(policy_class.get("__module__", "")) if isinstance(policy_class, dict) else ""
-    family = module.split(".")[1] if module.startswith("stable_baselines3.") else ""
-    if not family:
-        family = "sac" if any(k.startswith("actor.latent_pi.") for k in state) else "td3" if "actor.mu.0.weight" in state else ""
-    if family == "sac":
-        if "actor.log_std" not in state:
-            return "SAC", "gaussian", None
-        kwargs = data.get("policy_kwargs") or {}
-        clip = float(kwargs.get("clip_mean", 2.0)) if isinstance(kwargs, dict) else 2.0
-        clipped = "actor.mu.0.weight" in state
-        return "SAC (gSDE)", "gaussian_sde", (clip if clipped else None)
-    if family == "td3":
-        # SB3's DDPG is TD3 with one update per step and no target smoothing noise clip.
-        ddpg = data.get("policy_delay") == 1 and data.get("target_noise_clip") == 0.0
-        return ("DDPG" if ddpg else "TD3"), "deterministic", None
-    what = module or "an unknown policy"
-    raise ValueError(
-        f"the checkpoint holds {what}: prac serves off-policy actor-critics with Q critics "
-        "(SB3's SAC, TD3 and DDPG)"
-    )
-
-
-def load_sb3_zip(path: str | pathlib.Path) -> tuple[dict[str, npt.NDArray[np.float32]], dict[str, Any]]:
-    """The policy state dict (numpy) and the facts (spaces, gamma, algorithm, actor kind) of an
-    SB3 checkpoint."""
-    try:
-        import torch
-    except ImportError:
-        raise SystemExit("export_sb3 needs torch: pip install 'prac-client[sb3]'") from None
-    try:
-        with zipfile.ZipFile(zip_path(path)) as archive:
-            data = json.loads(archive.read("data"))
-            weights = torch.load(io.BytesIO(archive.read("policy.pth")), map_location="cpu", weights_only=True)
-    except (OSError, zipfile.BadZipFile, KeyError, ValueError) as e:
-        raise SystemExit(f"{path}: not a readable SB3 checkpoint ({e})") from None
-    state = {k: v.detach().cpu().numpy().astype(np.float32) for k, v in weights.items()}
-    facts = spaces_from_sb3_data(data)
-    try:
-        facts["algorithm"], facts["actor_kind"], facts["mean_clip"] = algorithm_of(data, state)
-    except ValueError as e:
-        raise SystemExit(f"{path}: {e}") from None
-    return state, facts
+# The checkpoint readers are prac_client.sb3's, also importable from here.
+__all__ = ["algorithm_of", "load_sb3_zip", "main", "spaces_from_sb3_data", "zip_path"]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -161,9 +63,6 @@ def main(argv: list[str] | None = None) -> int:
             print("note: rewards were normalised, so the bundle has no value scale; give absolute epsilons")
     if args.env:
         import gymnasium
-
-        from prac_client.record import gymnasium_id, sb3_policy
-        from prac_client.value_scale import measure
 
         env = gymnasium.make(gymnasium_id(args.env))
         policy = sb3_policy(args.model, env, args.vecnormalize)

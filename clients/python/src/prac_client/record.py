@@ -27,12 +27,18 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import re
 import sys
 from typing import Any, Callable
 
 import numpy as np
 import numpy.typing as npt
+from safetensors.numpy import save_file
+
+from prac_client import Client
+from prac_client.sb3 import gymnasium_id, load_sb3, sb3_policy
+
+# The SB3 loaders are prac_client.sb3's, also importable from here.
+__all__ = ["Exploration", "Policy", "gymnasium_id", "load_sb3", "main", "record", "sb3_policy"]
 
 Policy = Callable[[npt.NDArray[np.float32], bool], npt.NDArray[np.float32]]
 
@@ -99,78 +105,6 @@ def record(
     return {k: np.asarray(v, dtype=np.float32) for k, v in columns.items()}
 
 
-_GYM_MUJOCO = re.compile(
-    r"(Ant|HalfCheetah|Hopper|Humanoid|HumanoidStandup|InvertedDoublePendulum|InvertedPendulum|"
-    r"Pusher|Reacher|Swimmer|Walker2d)-v[23]"
-)
-
-
-def gymnasium_id(env_id: str) -> str:
-    """gymnasium's id for `env_id`: gym's MuJoCo v2/v3 ids (the rl-zoo's) map to v4, with a
-    warning on stderr; any other id is unchanged."""
-    match = _GYM_MUJOCO.fullmatch(env_id)
-    if match is None:
-        return env_id
-    ported = f"{match.group(1)}-v4"
-    print(
-        f"warning: {env_id} is gym's MuJoCo task, which gymnasium no longer has; playing {ported}, "
-        "gymnasium's port of it (same observation and action spaces)",
-        file=sys.stderr,
-    )
-    return ported
-
-
-def load_sb3(path: str, env: Any) -> Any:
-    """An SB3 SAC, TD3 or DDPG model from its checkpoint, loaded as rl-zoo's enjoy.py does."""
-    try:
-        from stable_baselines3 import DDPG, SAC, TD3
-    except ImportError:
-        raise SystemExit("--sb3 needs stable-baselines3: pip install 'prac-client[sb3]'") from None
-    import zipfile
-
-    from prac_client.export_sb3 import algorithm_of, zip_path
-
-    checkpoint = zip_path(path)
-    with zipfile.ZipFile(checkpoint) as archive:
-        data = json.loads(archive.read("data"))
-    try:
-        algorithm = algorithm_of(data, {})[0]
-    except ValueError as e:
-        raise SystemExit(f"{path}: {e}") from None
-    # SB3 types `load` on each class; the table would otherwise widen them to ABCMeta.
-    classes: dict[str, Any] = {"SAC": SAC, "TD3": TD3, "DDPG": DDPG}
-    cls = classes.get(algorithm, SAC)
-    custom_objects = {
-        "learning_rate": 0.0,
-        "lr_schedule": lambda _: 0.0,
-        "exploration_schedule": lambda _: 0.0,
-        "observation_space": env.observation_space,
-        "action_space": env.action_space,
-    }
-    return cls.load(checkpoint, device="cpu", custom_objects=custom_objects)
-
-
-def sb3_policy(
-    path: str, env: Any, vecnormalize: str | None = None
-) -> Callable[[npt.NDArray[np.float32]], npt.NDArray[np.float32]]:
-    """SB3's deterministic action for a raw observation: the checkpoint loaded by `load_sb3`,
-    behind its VecNormalize statistics where it has them (`vecnormalize`, or the file found beside
-    the checkpoint as the rl-zoo keeps it)."""
-    from prac_client import vecnormalize as vn
-    from prac_client.export_sb3 import zip_path
-
-    model = load_sb3(path, env)
-    stats_file, stats = vn.for_checkpoint(zip_path(path), vecnormalize)
-    if stats_file:
-        print(f"observations normalised as {stats_file} says", file=sys.stderr)
-
-    def act(obs: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
-        seen = stats.normalize(obs) if stats else obs
-        return np.asarray(model.predict(seen, deterministic=True)[0], dtype=np.float32)
-
-    return act
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m prac_client.record", description=__doc__.split("\n")[0])
     parser.add_argument("--env", required=True, help="gymnasium environment id, e.g. Pendulum-v1")
@@ -210,14 +144,10 @@ def main(argv: list[str] | None = None) -> int:
 
     import gymnasium
 
-    from safetensors.numpy import save_file
-
     env = gymnasium.make(gymnasium_id(args.env))
     if args.server:
         if not args.policy:
             parser.error("--server needs --policy")
-        from prac_client import Client
-
         client = Client(args.server)
         session = client.session(args.policy, epsilon=args.epsilon, epsilon_coef=args.epsilon_coef)
 

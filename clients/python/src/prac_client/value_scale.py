@@ -19,8 +19,11 @@ from typing import Any, Callable
 
 import numpy as np
 import numpy.typing as npt
+from safetensors import safe_open
 
+from prac_client import vecnormalize
 from prac_client.bundle import write_bundle
+from prac_client.sb3 import gymnasium_id, sb3_policy, zip_path
 
 Act = Callable[[npt.NDArray[np.float32]], npt.ArrayLike]
 
@@ -50,8 +53,6 @@ def measure(env: Any, act: Act, gamma: float, episodes: int, seed: int) -> tuple
 
 def read_bundle(path: str | os.PathLike[str]) -> tuple[dict[str, npt.NDArray[np.float32]], dict[str, Any]]:
     """A bundle's tensors and manifest."""
-    from safetensors import safe_open
-
     with safe_open(os.fspath(path), framework="numpy") as f:
         metadata = f.metadata() or {}
         if "manifest" not in metadata:
@@ -93,10 +94,6 @@ def main(argv: list[str] | None = None) -> int:
         v_pi, v_rand = args.v_pi, args.v_rand
     else:
         import gymnasium
-
-        from prac_client import vecnormalize
-        from prac_client.export_sb3 import zip_path
-        from prac_client.record import gymnasium_id, sb3_policy
 
         stats_file, stats = vecnormalize.for_checkpoint(zip_path(args.sb3), args.vecnormalize)
         if stats is not None and stats.norm_reward:
