@@ -1,18 +1,25 @@
 //! prac: predictable actor-critic control (PrAC) served over gRPC.
 //!
-//! - [`nn`]: f32 MLPs on nalgebra.
+//! What an embedder uses:
 //! - [`manifest`]: what a policy is (sizes, bounds, architecture, normalisation), as a bundle
 //!   stores it.
 //! - [`bundle`]: the safetensors weight-bundle format.
 //! - [`policy`]: a loaded policy's networks and the per-session evaluator.
 //! - [`plan`]: Replan (Algorithm 2), shared by serving and training.
-//! - [`serve`]: the gRPC daemon.
 //! - [`domains`]: the environments (task interface) for training and the simulator client.
-//! - [`env_rpc`]: environments over DeepMind's dm_env_rpc protocol (training on any served env).
 //! - [`eval`]: rollouts: returns, the value scale and the dynamics model's error.
+//! - [`client`]: connecting, waiting for a server's policies, a local server, resuming sessions.
+//! - [`proto`]: the gRPC API's messages and stubs.
+//!
+//! What the `prac` binary runs, each through a few entry points:
+//! - [`serve`]: the gRPC daemon.
+//! - [`env_rpc`]: environments over DeepMind's dm_env_rpc protocol (training on any served env).
 //! - [`train`]: SAC + dynamics model training (Algorithm 1) with burn (feature `train`).
 //! - [`render`]: pictures of domains and plans, and charts with plotters (feature `render`).
-//! - [`client`]: connecting, waiting for a server's policies, a local server, resuming sessions.
+//!
+//! Everything else is private to the crate (the f32 MLPs of `nn`, the server's sessions, batch
+//! workers and transport); tests and benchmarks reach what they need of it through `testing`,
+//! which is not part of the API. The fuzz targets are built with the feature `fuzz`.
 //!
 //! The features `train` and `render` (both default) carry the heavy dependencies, burn and
 //! plotters; a client that only talks to the server or plays the domains (prac-bench) goes
@@ -27,7 +34,7 @@ pub mod domains;
 pub mod env_rpc;
 pub mod eval;
 pub mod manifest;
-pub mod nn;
+pub(crate) mod nn;
 pub mod plan;
 pub mod policy;
 #[cfg(feature = "render")]

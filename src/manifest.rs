@@ -4,18 +4,18 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::nn::Activation;
+pub use crate::nn::Activation;
 
 /// The version a bundle is written with when it uses nothing newer (every bundle `prac train`
 /// writes): old servers keep reading them.
-pub const FORMAT_VERSION: u32 = 1;
+pub(crate) const FORMAT_VERSION: u32 = 1;
 /// Version 2 adds `actor.kind` and `actor.mean_clip` (actors without a Gaussian head) and
 /// `obs_normalization`.
 pub const FORMAT_VERSION_ACTOR_KINDS: u32 = 2;
 /// Version 3 adds `critic.layer_norm` (critics with a layer norm after each hidden layer).
-pub const FORMAT_VERSION_CRITIC_NORMS: u32 = 3;
+pub(crate) const FORMAT_VERSION_CRITIC_NORMS: u32 = 3;
 /// The newest version this prac reads.
-pub const NEWEST_FORMAT_VERSION: u32 = FORMAT_VERSION_CRITIC_NORMS;
+pub(crate) const NEWEST_FORMAT_VERSION: u32 = FORMAT_VERSION_CRITIC_NORMS;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Manifest {
@@ -81,7 +81,7 @@ pub enum ActorKind {
 }
 
 impl ActorKind {
-    pub fn is_gaussian(&self) -> bool {
+    pub(crate) fn is_gaussian(&self) -> bool {
         *self == ActorKind::Gaussian
     }
     pub fn as_str(self) -> &'static str {
@@ -120,16 +120,16 @@ pub struct CriticSpec {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Normalization {
     pub obs_mean: Vec<f32>,
-    pub obs_std: Vec<f32>,
-    pub action_mean: Vec<f32>,
-    pub action_std: Vec<f32>,
-    pub delta_mean: Vec<f32>,
-    pub delta_std: Vec<f32>,
+    pub(crate) obs_std: Vec<f32>,
+    pub(crate) action_mean: Vec<f32>,
+    pub(crate) action_std: Vec<f32>,
+    pub(crate) delta_mean: Vec<f32>,
+    pub(crate) delta_std: Vec<f32>,
 }
 
 impl Normalization {
     /// No normalisation (zero means, unit stds).
-    pub fn identity(obs_dim: usize, act_dim: usize) -> Normalization {
+    pub(crate) fn identity(obs_dim: usize, act_dim: usize) -> Normalization {
         Normalization {
             obs_mean: vec![0.0; obs_dim],
             obs_std: vec![1.0; obs_dim],
@@ -154,7 +154,7 @@ pub struct ObsNormalization {
 
 impl ObsNormalization {
     /// `1 / sqrt(var + epsilon)` per feature.
-    pub fn inverse_std(&self) -> Vec<f32> {
+    pub(crate) fn inverse_std(&self) -> Vec<f32> {
         self.var
             .iter()
             .map(|&v| (1.0 / (f64::from(v) + f64::from(self.epsilon)).sqrt()) as f32)
@@ -201,7 +201,7 @@ pub struct Provenance {
 
 impl Manifest {
     /// Checks everything the tensors do not: returns the offending field and why.
-    pub fn validate(&self) -> Result<(), (String, String)> {
+    pub(crate) fn validate(&self) -> Result<(), (String, String)> {
         let fail = |field: &str, why: String| Err((field.to_string(), why));
         if !(FORMAT_VERSION..=NEWEST_FORMAT_VERSION).contains(&self.format_version) {
             return fail(

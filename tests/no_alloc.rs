@@ -11,8 +11,8 @@ use std::sync::Arc;
 
 use prac::plan::{ReplanConfig, ReplanScratch};
 use prac::policy::Evaluator;
-use prac::serve::{Arrival, Session, SessionSettings, StepInput};
 use prac::testing::hopper_sized_manifest;
+use prac::testing::serve::{Arrival, Session, SessionSettings, StepInput};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 

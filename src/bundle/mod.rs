@@ -14,17 +14,17 @@ use crate::nn::{Dense, LayerNorm, Mlp};
 use crate::policy::{Actor, DynamicsModel, Policy};
 
 /// Key of the manifest JSON in `__metadata__`.
-pub const MANIFEST_KEY: &str = "manifest";
+pub(crate) const MANIFEST_KEY: &str = "manifest";
 /// Upper bound on a bundle file, to refuse absurd inputs before reading them.
-pub const MAX_BUNDLE_BYTES: u64 = 1 << 30;
+pub(crate) const MAX_BUNDLE_BYTES: u64 = 1 << 30;
 
 /// A bundle that cannot be used: names the file, the field (manifest key or tensor name) and why.
 #[derive(Debug, thiserror::Error)]
 #[error("{}: {field}: {reason}", file.display())]
 pub struct BundleError {
-    pub file: PathBuf,
-    pub field: String,
-    pub reason: String,
+    pub(crate) file: PathBuf,
+    pub(crate) field: String,
+    pub(crate) reason: String,
 }
 
 impl BundleError {
@@ -57,13 +57,13 @@ fn sequential_norm(prefix: &str, i: usize) -> (String, String) {
     )
 }
 
-pub fn critic_prefix(k: usize) -> String {
+pub(crate) fn critic_prefix(k: usize) -> String {
     format!("critic.qf{k}")
 }
-pub const ACTOR_TRUNK: &str = "actor.latent_pi";
-pub const ACTOR_MU: &str = "actor.mu";
-pub const ACTOR_LOG_STD: &str = "actor.log_std";
-pub const MODEL_NET: &str = "model.net";
+pub(crate) const ACTOR_TRUNK: &str = "actor.latent_pi";
+pub(crate) const ACTOR_MU: &str = "actor.mu";
+pub(crate) const ACTOR_LOG_STD: &str = "actor.log_std";
+pub(crate) const MODEL_NET: &str = "model.net";
 
 /// "sha256:<hex>" of some bytes.
 pub fn content_hash(bytes: &[u8]) -> String {
@@ -71,7 +71,7 @@ pub fn content_hash(bytes: &[u8]) -> String {
 }
 
 /// Largest safetensors header read: a manifest and the tensor index take a few KB.
-pub const MAX_HEADER_BYTES: u64 = 16 << 20;
+pub(crate) const MAX_HEADER_BYTES: u64 = 16 << 20;
 
 /// Reads, validates and builds a policy from a bundle file. The file must be a regular file; its
 /// header (manifest and tensor index) is read and checked against the file's size before the
@@ -101,7 +101,7 @@ pub fn load(path: &Path) -> Result<Policy, BundleError> {
 
 /// Validates and builds a policy from a reader of `size` bytes: the header first, then, if it
 /// holds, the rest. `path` only names the source in errors.
-pub fn from_reader<R: std::io::Read + std::io::Seek>(
+pub(crate) fn from_reader<R: std::io::Read + std::io::Seek>(
     mut reader: R,
     size: u64,
     path: &Path,
@@ -338,7 +338,7 @@ fn check_declared_tensors(
 }
 
 /// Validates and builds a policy from bundle bytes; `path` only names the source in errors.
-pub fn from_bytes(bytes: &[u8], path: &Path) -> Result<Policy, BundleError> {
+pub(crate) fn from_bytes(bytes: &[u8], path: &Path) -> Result<Policy, BundleError> {
     let err = |field: &str, reason: String| BundleError::at(path, field, reason);
     let (_, metadata) = SafeTensors::read_metadata(bytes).map_err(|e| {
         err(
@@ -527,10 +527,10 @@ impl TensorReader<'_> {
 }
 
 /// A named tensor in bundle layout: name, shape, row-major values.
-pub type NamedTensor = (String, Vec<usize>, Vec<f32>);
+pub(crate) type NamedTensor = (String, Vec<usize>, Vec<f32>);
 
 /// The named tensors of a policy, in bundle layout.
-pub fn tensors(policy: &Policy) -> Vec<NamedTensor> {
+pub(crate) fn tensors(policy: &Policy) -> Vec<NamedTensor> {
     fn push_dense(out: &mut Vec<NamedTensor>, prefix: &str, d: &Dense) {
         push_layer(out, format!("{prefix}.weight"), format!("{prefix}.bias"), d);
     }

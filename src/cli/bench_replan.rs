@@ -49,7 +49,7 @@ impl BenchReplanArgs {
         let lengths: Vec<usize> = self.lengths.into_iter().filter(|&l| l > 0).collect();
         let batches: Vec<usize> = self.batches.into_iter().filter(|&b| b > 0).collect();
         let rows = lengths_and_batches(&lengths, &batches, per_case);
-        let kernel = kernel(&[1, 8, 64, 256, 1024], per_case);
+        let kernel = prac::testing::critic_kernel(&[1, 8, 64, 256, 1024], per_case);
         let matmul = matmul_gflops(per_case);
         print!("{}", report(&rows, &kernel, matmul));
         Ok(())
@@ -104,7 +104,7 @@ struct BenchRow {
 fn lengths_and_batches(lengths: &[usize], batches: &[usize], per_case: Duration) -> Vec<BenchRow> {
     let policy = Arc::new(prac::testing::random_policy(hopper_sized_manifest(), 1));
     let (actor_flops, critic_flops, model_flops) = policy.flops();
-    let n_critics = policy.critics.len() as u64;
+    let n_critics = policy.critic_count() as u64;
     let (obs_dim, act_dim) = (policy.obs_dim(), policy.act_dim());
     let mut rows = Vec::new();
     for &length in lengths {
@@ -231,7 +231,7 @@ fn bundle_replan(
     per_case: Duration,
 ) -> anyhow::Result<BundleReplan> {
     use prac::proto::session_options::Tolerance;
-    use prac::serve::SessionSettings;
+    use prac::testing::serve::SessionSettings;
     let policy = Arc::new(prac::bundle::load(path)?);
     let domain = policy.manifest.domain.clone();
     let mut env = prac::domains::make(&domain).ok_or_else(|| {
@@ -245,7 +245,7 @@ fn bundle_replan(
         .map_err(|e| anyhow::anyhow!(e))?
         .replan;
     let (actor_flops, critic_flops, model_flops) = policy.flops();
-    let n_critics = policy.critics.len() as u64;
+    let n_critics = policy.critic_count() as u64;
     let spec = env.spec().clone();
     let (od, ad) = (spec.obs_dim, spec.act_dim);
     let mut nets = Counting {
@@ -325,45 +325,7 @@ fn bundle_report(rows: &[BundleReplan], matmul: f64) -> String {
     out
 }
 
-/// The MLP kernel alone: one Hopper-sized critic (18 inputs, [256, 256] ReLU, 1 output) over
-/// `rows` states at a time.
-struct KernelRow {
-    rows: usize,
-    micros_per_call: f64,
-    gflops: f64,
-}
-
-/// Times the critic's forward at each batch size for `per_case` wall time.
-fn kernel(batch_rows: &[usize], per_case: Duration) -> Vec<KernelRow> {
-    let policy = prac::testing::random_policy(hopper_sized_manifest(), 3);
-    let critic = &policy.critics[0];
-    let mut scratch = critic.scratch();
-    batch_rows
-        .iter()
-        .map(|&rows| {
-            let inputs: Vec<f32> = (0..rows * critic.input_dim())
-                .map(|i| (i as f32 * 0.37).sin())
-                .collect();
-            std::hint::black_box(critic.forward_rows(&inputs, &mut scratch));
-            let start = Instant::now();
-            let mut calls = 0u64;
-            while start.elapsed() < per_case {
-                std::hint::black_box(
-                    critic.forward_rows(std::hint::black_box(&inputs), &mut scratch),
-                );
-                calls += 1;
-            }
-            let seconds = start.elapsed().as_secs_f64();
-            KernelRow {
-                rows,
-                micros_per_call: seconds * 1e6 / calls as f64,
-                gflops: (critic.flops() * rows as u64 * calls) as f64 / seconds / 1e9,
-            }
-        })
-        .collect()
-}
-
-fn report(rows: &[BenchRow], kernel: &[KernelRow], matmul: f64) -> String {
+fn report(rows: &[BenchRow], kernel: &[prac::testing::KernelRow], matmul: f64) -> String {
     let mut out = format!(
         "MLP kernel: one critic (18 inputs, [256, 256] ReLU, 1 output), rows per call, one thread\n\
          machine matmul (512^3 sgemm, matrixmultiply, 1 thread): {matmul:.1} GFLOP/s\n\

@@ -45,7 +45,7 @@ const REST_LINEAR: f32 = 0.01;
 const REST_ANGULAR: f32 = 2.0 / 180.0 * std::f32::consts::PI;
 const REST_TIME: f32 = 0.5;
 
-pub struct Lander {
+pub(crate) struct Lander {
     spec: EnvSpec,
     world: PhysicsWorld,
     ground: ColliderHandle,
@@ -60,7 +60,7 @@ pub struct Lander {
     steps: u32,
     over: bool,
     /// The terrain polyline, for drawing.
-    pub terrain: Vec<(f32, f32)>,
+    pub(crate) terrain: Vec<(f32, f32)>,
 }
 
 impl Default for Lander {
@@ -87,7 +87,7 @@ fn spec() -> EnvSpec {
 }
 
 impl Lander {
-    pub fn new() -> Lander {
+    pub(crate) fn new() -> Lander {
         let mut lander = Lander {
             spec: spec(),
             world: PhysicsWorld::default(),

@@ -9,14 +9,14 @@ mod lander;
 mod pendulum;
 mod planar;
 mod robots;
-pub mod scene;
+pub(crate) mod scene;
 mod spatial;
 mod walker;
 mod walker_base;
 
 pub use episode::EpisodeTotals;
-pub use lander::Lander;
-pub use pendulum::Pendulum;
+pub(crate) use lander::Lander;
+pub(crate) use pendulum::Pendulum;
 pub use planar::{Planar, PlanarBody, PlanarState};
 pub use scene::{Part, Scene, Shape};
 pub use spatial::{Spatial, SpatialBody};
@@ -29,8 +29,8 @@ pub struct EnvSpec {
     pub obs_dim: usize,
     pub act_dim: usize,
     /// Documented observation ranges (inclusive); observations never leave them.
-    pub obs_low: Vec<f32>,
-    pub obs_high: Vec<f32>,
+    pub(crate) obs_low: Vec<f32>,
+    pub(crate) obs_high: Vec<f32>,
     /// Actions are clipped to these bounds.
     pub action_low: Vec<f32>,
     pub action_high: Vec<f32>,
@@ -139,12 +139,16 @@ pub fn forward_distance(start: Option<f64>, env: &dyn Env) -> Option<f64> {
 }
 
 /// An angle wrapped to [-pi, pi).
-pub fn wrap_angle(x: f64) -> f64 {
+pub(crate) fn wrap_angle(x: f64) -> f64 {
     (x + std::f64::consts::PI).rem_euclid(2.0 * std::f64::consts::PI) - std::f64::consts::PI
 }
 
 /// Checks an action and returns it clipped to the bounds (into `clipped`).
-pub fn clip_action(spec: &EnvSpec, action: &[f32], clipped: &mut [f32]) -> Result<(), EnvError> {
+pub(crate) fn clip_action(
+    spec: &EnvSpec,
+    action: &[f32],
+    clipped: &mut [f32],
+) -> Result<(), EnvError> {
     if action.len() != spec.act_dim {
         return Err(EnvError::ActionLength {
             domain: spec.name,

@@ -13,7 +13,7 @@ const G: f64 = 10.0;
 const M: f64 = 1.0;
 const L: f64 = 1.0;
 
-pub struct Pendulum {
+pub(crate) struct Pendulum {
     spec: EnvSpec,
     theta: f64,
     theta_dot: f64,
@@ -28,7 +28,7 @@ impl Default for Pendulum {
 }
 
 impl Pendulum {
-    pub fn new() -> Pendulum {
+    pub(crate) fn new() -> Pendulum {
         Pendulum {
             spec: EnvSpec {
                 name: "pendulum",

@@ -141,12 +141,12 @@ pub(super) struct RobotDef {
 /// touch (as after a reset).
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct PlanarState {
-    pub root: [f32; 3],
-    pub root_velocity: [f32; 3],
-    pub joints: Vec<f32>,
-    pub joint_velocities: Vec<f32>,
+    pub(crate) root: [f32; 3],
+    pub(crate) root_velocity: [f32; 3],
+    pub(crate) joints: Vec<f32>,
+    pub(crate) joint_velocities: Vec<f32>,
     #[serde(default)]
-    pub feet_contact: Vec<f32>,
+    pub(crate) feet_contact: Vec<f32>,
 }
 
 /// A planar walker (Hopper, Walker2D, HalfCheetah).
@@ -176,17 +176,17 @@ pub struct PlanarBody {
 }
 
 impl Planar {
-    pub fn hopper() -> Planar {
+    pub(crate) fn hopper() -> Planar {
         Planar::of(robots::hopper())
     }
 
     // Walker2D, the domain "walker"; not a constructor of the skeleton `Walker`.
     #[allow(clippy::self_named_constructors)]
-    pub fn walker() -> Planar {
+    pub(crate) fn walker() -> Planar {
         Planar::of(robots::walker())
     }
 
-    pub fn cheetah() -> Planar {
+    pub(crate) fn cheetah() -> Planar {
         Planar::of(robots::cheetah())
     }
 

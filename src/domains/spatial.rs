@@ -179,11 +179,11 @@ pub struct SpatialBody {
 }
 
 impl Spatial {
-    pub fn ant() -> Spatial {
+    pub(crate) fn ant() -> Spatial {
         Spatial::of(robots::ant())
     }
 
-    pub fn humanoid() -> Spatial {
+    pub(crate) fn humanoid() -> Spatial {
         Spatial::of(robots::humanoid())
     }
 

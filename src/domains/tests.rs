@@ -1119,4 +1119,3 @@ fn every_walker_observes_the_feet_contacts_one_step_late_as_pybullet() {
         e.body.feet_contact_for_test()
     });
 }
-

@@ -21,14 +21,14 @@ pub use serve::{DomainServer, run as serve};
 
 /// Generated from proto/dm_env_rpc/v1/dm_env_rpc.proto and the google.rpc.Status it imports.
 #[allow(unreachable_pub, clippy::all)]
-pub mod wire {
-    pub mod dm_env_rpc {
-        pub mod v1 {
+pub(crate) mod wire {
+    pub(crate) mod dm_env_rpc {
+        pub(crate) mod v1 {
             tonic::include_proto!("dm_env_rpc.v1");
         }
     }
-    pub mod google {
-        pub mod rpc {
+    pub(crate) mod google {
+        pub(crate) mod rpc {
             tonic::include_proto!("google.rpc");
         }
     }

@@ -14,7 +14,7 @@ use crate::policy::{Evaluator, Policy, unscale_action};
 #[derive(Clone, Debug, Default)]
 pub struct Episode {
     pub ret: f64,
-    pub discounted: f64,
+    pub(crate) discounted: f64,
     pub len: usize,
     /// It ended by the task's termination (a walker fell, the lander landed or crashed), not by
     /// the step limit.
@@ -22,12 +22,12 @@ pub struct Episode {
     /// How far the robot moved forward (`Env::forward_position`), metres.
     pub distance: Option<f64>,
     /// len + 1 observations.
-    pub observations: Vec<f32>,
-    pub actions: Vec<f32>,
+    pub(crate) observations: Vec<f32>,
+    pub(crate) actions: Vec<f32>,
 }
 
 impl Episode {
-    pub fn outcome(&self) -> Outcome {
+    pub(crate) fn outcome(&self) -> Outcome {
         Outcome {
             ret: self.ret,
             discounted: self.discounted,
@@ -102,7 +102,7 @@ impl Summary {
 
 /// Plays one episode from `seed`; `act(obs, action)` writes an action in [-1, 1], which is
 /// scaled to the domain's bounds.
-pub fn run_episode(
+pub(crate) fn run_episode(
     env: &mut dyn Env,
     seed: u64,
     gamma: f64,

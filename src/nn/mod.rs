@@ -28,7 +28,7 @@ impl Activation {
 /// One affine layer, PyTorch layout: `weight` is [out, in]. The kernels read a packed copy made
 /// once at construction, so the weights are immutable.
 #[derive(Clone, Debug)]
-pub struct Dense {
+pub(crate) struct Dense {
     weight: DMatrix<f32>,
     bias: DVector<f32>,
     /// Panels of [`PANEL`] outputs; within a panel, each input's weights are contiguous
@@ -42,7 +42,7 @@ pub struct Dense {
 const PANEL: usize = 16;
 
 impl Dense {
-    pub fn new(weight: DMatrix<f32>, bias: DVector<f32>) -> Dense {
+    pub(crate) fn new(weight: DMatrix<f32>, bias: DVector<f32>) -> Dense {
         let (out, inp) = weight.shape();
         let panels = out.div_ceil(PANEL);
         let mut packed = vec![0.0; panels * inp * PANEL];
@@ -62,28 +62,28 @@ impl Dense {
             padded_bias,
         }
     }
-    pub fn input_dim(&self) -> usize {
+    pub(crate) fn input_dim(&self) -> usize {
         self.weight.ncols()
     }
-    pub fn output_dim(&self) -> usize {
+    pub(crate) fn output_dim(&self) -> usize {
         self.weight.nrows()
     }
     /// The [out, in] weights.
-    pub fn weight(&self) -> &DMatrix<f32> {
+    pub(crate) fn weight(&self) -> &DMatrix<f32> {
         &self.weight
     }
-    pub fn bias(&self) -> &DVector<f32> {
+    pub(crate) fn bias(&self) -> &DVector<f32> {
         &self.bias
     }
     /// Builds a layer from row-major [out, in] weights, as stored in safetensors.
-    pub fn from_row_major(out: usize, inp: usize, weight: &[f32], bias: &[f32]) -> Dense {
+    pub(crate) fn from_row_major(out: usize, inp: usize, weight: &[f32], bias: &[f32]) -> Dense {
         Dense::new(
             DMatrix::from_row_slice(out, inp, weight),
             DVector::from_column_slice(bias),
         )
     }
     /// Row-major [out, in] weights, as stored in safetensors.
-    pub fn weight_row_major(&self) -> Vec<f32> {
+    pub(crate) fn weight_row_major(&self) -> Vec<f32> {
         self.weight.transpose().as_slice().to_vec()
     }
     fn flops(&self) -> u64 {
@@ -95,7 +95,7 @@ impl Dense {
     /// one build serves every x86-64). Every path computes each output as the same chain of fused
     /// multiply-adds (from the bias, over the inputs in order), so they agree bit for bit and a
     /// row's result does not depend on the other rows.
-    pub fn forward_rows(&self, inputs: &[f32], outputs: &mut [f32]) {
+    pub(crate) fn forward_rows(&self, inputs: &[f32], outputs: &mut [f32]) {
         let (out, inp) = (self.output_dim(), self.input_dim());
         assert!(
             inp > 0
@@ -286,17 +286,17 @@ impl Tile<'_> {
 /// PyTorch's `nn.LayerNorm` over each row: the row standardised by its own mean and (biased)
 /// variance plus `LAYER_NORM_EPS`, then scaled and shifted per feature.
 #[derive(Clone, Debug, PartialEq)]
-pub struct LayerNorm {
+pub(crate) struct LayerNorm {
     scale: Vec<f32>,
     shift: Vec<f32>,
 }
 
 /// PyTorch's and burn's default epsilon of a layer norm.
-pub const LAYER_NORM_EPS: f32 = 1e-5;
+pub(crate) const LAYER_NORM_EPS: f32 = 1e-5;
 
 impl LayerNorm {
     /// A layer norm of `scale.len()` features; `shift` must be as long.
-    pub fn new(scale: Vec<f32>, shift: Vec<f32>) -> Result<LayerNorm, LayerNormError> {
+    pub(crate) fn new(scale: Vec<f32>, shift: Vec<f32>) -> Result<LayerNorm, LayerNormError> {
         if scale.len() != shift.len() {
             return Err(LayerNormError::ShiftLength {
                 scale: scale.len(),
@@ -305,13 +305,13 @@ impl LayerNorm {
         }
         Ok(LayerNorm { scale, shift })
     }
-    pub fn dim(&self) -> usize {
+    pub(crate) fn dim(&self) -> usize {
         self.scale.len()
     }
-    pub fn scale(&self) -> &[f32] {
+    pub(crate) fn scale(&self) -> &[f32] {
         &self.scale
     }
-    pub fn shift(&self) -> &[f32] {
+    pub(crate) fn shift(&self) -> &[f32] {
         &self.shift
     }
 
@@ -331,7 +331,7 @@ impl LayerNorm {
 
 /// Layer norms that do not fit the chain they are given to.
 #[derive(Debug, thiserror::Error)]
-pub enum LayerNormError {
+pub(crate) enum LayerNormError {
     #[error("a layer norm's shift has {shift} features, its scale {scale}")]
     ShiftLength { scale: usize, shift: usize },
     #[error("{got} layer norms for {expected} hidden layers; a chain has one per hidden layer")]
@@ -348,7 +348,7 @@ pub enum LayerNormError {
 /// `activate_output` is set (SB3's `latent_pi` ends in an activation, critics do not). A chain
 /// may normalise each hidden layer's output before its activation ([`Mlp::with_layer_norms`]).
 #[derive(Clone, Debug)]
-pub struct Mlp {
+pub(crate) struct Mlp {
     input_dim: usize,
     layers: Vec<Dense>,
     activation: Activation,
@@ -359,26 +359,26 @@ pub struct Mlp {
 
 /// Per-layer outputs of a forward; they grow to the largest batch seen and are reused.
 #[derive(Clone, Debug, Default)]
-pub struct MlpScratch {
+pub(crate) struct MlpScratch {
     outputs: Vec<Vec<f32>>,
 }
 
 /// A chain whose layer dimensions do not connect.
 #[derive(Debug, thiserror::Error)]
 #[error("layer {layer} takes {got} inputs but the previous layer gives {expected}")]
-pub struct ShapeError {
-    pub layer: usize,
-    pub expected: usize,
-    pub got: usize,
+pub(crate) struct ShapeError {
+    pub(crate) layer: usize,
+    pub(crate) expected: usize,
+    pub(crate) got: usize,
 }
 
 /// Sets `buffer` to `len` values, allocating only when it has never been that long.
-pub fn resize(buffer: &mut Vec<f32>, len: usize) {
+pub(crate) fn resize(buffer: &mut Vec<f32>, len: usize) {
     buffer.resize(len, 0.0);
 }
 
 impl Mlp {
-    pub fn new(
+    pub(crate) fn new(
         input_dim: usize,
         layers: Vec<Dense>,
         activation: Activation,
@@ -406,7 +406,7 @@ impl Mlp {
 
     /// The chain with a layer norm after each hidden layer, before its activation (the
     /// `Linear, LayerNorm, ReLU` blocks of layer-normalised critics).
-    pub fn with_layer_norms(mut self, norms: Vec<LayerNorm>) -> Result<Mlp, LayerNormError> {
+    pub(crate) fn with_layer_norms(mut self, norms: Vec<LayerNorm>) -> Result<Mlp, LayerNormError> {
         let hidden = self.layers.len().saturating_sub(1);
         if norms.len() != hidden {
             return Err(LayerNormError::Count {
@@ -428,33 +428,30 @@ impl Mlp {
     }
 
     /// The hidden layers' norms (empty when the chain has none).
-    pub fn norms(&self) -> &[LayerNorm] {
+    pub(crate) fn norms(&self) -> &[LayerNorm] {
         &self.norms
     }
 
-    pub fn input_dim(&self) -> usize {
+    pub(crate) fn input_dim(&self) -> usize {
         self.input_dim
     }
-    pub fn output_dim(&self) -> usize {
+    pub(crate) fn output_dim(&self) -> usize {
         self.layers.last().map_or(self.input_dim, Dense::output_dim)
     }
-    pub fn layers(&self) -> &[Dense] {
+    pub(crate) fn layers(&self) -> &[Dense] {
         &self.layers
     }
-    pub fn activation(&self) -> Activation {
-        self.activation
-    }
     /// Floating-point operations of one state's forward (multiply-adds count as two).
-    pub fn flops(&self) -> u64 {
+    pub(crate) fn flops(&self) -> u64 {
         self.layers.iter().map(Dense::flops).sum()
     }
 
-    pub fn scratch(&self) -> MlpScratch {
+    pub(crate) fn scratch(&self) -> MlpScratch {
         self.scratch_for(1)
     }
 
     /// Scratch with room for batches of up to `rows` states.
-    pub fn scratch_for(&self, rows: usize) -> MlpScratch {
+    pub(crate) fn scratch_for(&self, rows: usize) -> MlpScratch {
         MlpScratch {
             outputs: self
                 .layers
@@ -466,7 +463,11 @@ impl Mlp {
 
     /// Forward of n states: `inputs` is [n, input_dim] row-major; the result ([n, output_dim])
     /// lives in `scratch`. Allocates only when n exceeds every earlier batch.
-    pub fn forward_rows<'s>(&self, inputs: &'s [f32], scratch: &'s mut MlpScratch) -> &'s [f32] {
+    pub(crate) fn forward_rows<'s>(
+        &self,
+        inputs: &'s [f32],
+        scratch: &'s mut MlpScratch,
+    ) -> &'s [f32] {
         assert_eq!(
             inputs.len() % self.input_dim,
             0,

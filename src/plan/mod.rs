@@ -87,13 +87,13 @@ pub struct Plan {
 /// commitment as it was: the bookkeeping the server's sessions, training-with-PrAC and
 /// `prac render` share.
 #[derive(Clone, Debug)]
-pub struct Commitment {
+pub(crate) struct Commitment {
     plan: Plan,
     spare: Plan,
 }
 
 impl Commitment {
-    pub fn with_capacity(obs_dim: usize, act_dim: usize, capacity: usize) -> Commitment {
+    pub(crate) fn with_capacity(obs_dim: usize, act_dim: usize, capacity: usize) -> Commitment {
         Commitment {
             plan: Plan::with_capacity(obs_dim, act_dim, capacity),
             spare: Plan::with_capacity(obs_dim, act_dim, capacity),
@@ -101,28 +101,28 @@ impl Commitment {
     }
 
     /// The committed plan: action(0) is the action of the last replanned step.
-    pub fn plan(&self) -> &Plan {
+    pub(crate) fn plan(&self) -> &Plan {
         &self.plan
     }
 
     /// The committed plan, to adjust in place after a commit.
-    pub fn plan_mut(&mut self) -> &mut Plan {
+    pub(crate) fn plan_mut(&mut self) -> &mut Plan {
         &mut self.plan
     }
 
     /// Takes over a plan committed elsewhere (a resumed session).
-    pub fn replace(&mut self, plan: Plan) {
+    pub(crate) fn replace(&mut self, plan: Plan) {
         self.plan = plan;
     }
 
     /// Forgets the commitment (a new episode starts from nothing).
-    pub fn clear(&mut self) {
+    pub(crate) fn clear(&mut self) {
         self.plan.clear();
     }
 
     /// What the next step's replan checks and where it writes: the commitment after its first
     /// (executed) action, or nothing when `fresh` (an episode's first step), and the spare plan.
-    pub fn next_replan(&mut self, fresh: bool) -> (PlanView<'_>, &mut Plan) {
+    pub(crate) fn next_replan(&mut self, fresh: bool) -> (PlanView<'_>, &mut Plan) {
         let old = if fresh || self.plan.is_empty() {
             PlanView::empty()
         } else {
@@ -132,29 +132,29 @@ impl Commitment {
     }
 
     /// Makes the plan the last replan wrote the commitment.
-    pub fn commit(&mut self) {
+    pub(crate) fn commit(&mut self) {
         std::mem::swap(&mut self.plan, &mut self.spare);
     }
 
     /// Takes back the last [`Commitment::commit`] (before any other replan): the commitment is
     /// the plan it replaced.
-    pub fn uncommit(&mut self) {
+    pub(crate) fn uncommit(&mut self) {
         std::mem::swap(&mut self.plan, &mut self.spare);
     }
 
     /// The paper's forecast `f_t = t + 1 - i` of the committed first action, executed at step
     /// `t` and decided at step `i`.
-    pub fn forecast(&self, t: u64) -> u64 {
+    pub(crate) fn forecast(&self, t: u64) -> u64 {
         t + 1 - self.plan.decided_at(0)
     }
 }
 
 /// One session's PrAC without a server: a commitment replanned at each observed state, with its
 /// settings, buffers and rng. Training-with-PrAC, `prac render` and `prac bench-replan` drive
-/// their robots with it; the server's sessions add what serving needs around a [`Commitment`].
+/// their robots with it; the server's sessions add what serving needs around a `Commitment`.
 #[derive(Clone, Debug)]
 pub struct Planner<R> {
-    pub config: ReplanConfig,
+    pub(crate) config: ReplanConfig,
     commitment: Commitment,
     scratch: ReplanScratch,
     rng: R,
@@ -198,7 +198,7 @@ impl<R: Rng + Clone> Planner<R> {
         self.commitment.plan()
     }
 
-    /// The forecast f_t of the action executed at `step` (see [`Commitment::forecast`]).
+    /// The forecast f_t of the action executed at `step` (see `Commitment::forecast`).
     pub fn forecast(&self, step: u64) -> u64 {
         self.commitment.forecast(step)
     }
@@ -241,12 +241,12 @@ impl Plan {
     pub fn obs_dim(&self) -> usize {
         self.obs_dim
     }
-    pub fn clear(&mut self) {
+    pub(crate) fn clear(&mut self) {
         self.actions.clear();
         self.next_obs.clear();
         self.decided_at.clear();
     }
-    pub fn push(&mut self, action: &[f32], next_obs: &[f32], decided_at: u64) {
+    pub(crate) fn push(&mut self, action: &[f32], next_obs: &[f32], decided_at: u64) {
         debug_assert_eq!(action.len(), self.act_dim);
         debug_assert_eq!(next_obs.len(), self.obs_dim);
         self.actions.extend_from_slice(action);
@@ -263,7 +263,7 @@ impl Plan {
         self.decided_at[i]
     }
     /// Every action of the plan, entry after entry.
-    pub fn actions_mut(&mut self) -> &mut [f32] {
+    pub(crate) fn actions_mut(&mut self) -> &mut [f32] {
         &mut self.actions
     }
     /// The entries from `start` on.
@@ -280,7 +280,7 @@ impl Plan {
 }
 
 impl<'a> PlanView<'a> {
-    pub fn empty() -> PlanView<'static> {
+    pub(crate) fn empty() -> PlanView<'static> {
         PlanView {
             act_dim: 0,
             obs_dim: 0,
@@ -289,10 +289,11 @@ impl<'a> PlanView<'a> {
             decided_at: &[],
         }
     }
-    pub fn len(&self) -> usize {
+    pub(crate) fn len(&self) -> usize {
         self.decided_at.len()
     }
-    pub fn is_empty(&self) -> bool {
+    #[cfg(test)]
+    pub(crate) fn is_empty(&self) -> bool {
         self.decided_at.is_empty()
     }
     pub fn action(&self, i: usize) -> &'a [f32] {
@@ -314,7 +315,7 @@ pub struct ReplanOutcome {
     /// Index in the old plan of the action that failed the test.
     pub broke_at: Option<usize>,
     /// New policy actions appended after the kept ones.
-    pub appended: usize,
+    pub(crate) appended: usize,
 }
 
 /// A network gave a non-finite value; the new plan is unusable and the caller keeps its old one.
@@ -439,7 +440,7 @@ fn all_finite(values: &[f32]) -> bool {
 ///
 /// The old plan is checked up to `max_horizon` actions; the new plan never exceeds `max_horizon`
 /// and is never empty. A non-finite network output is an error; `job.new` is then unusable.
-pub fn replan<N: Networks, R: Rng + Clone>(
+pub(crate) fn replan<N: Networks, R: Rng + Clone>(
     nets: &mut N,
     job: ReplanJob<'_, R>,
     scratch: &mut ReplanScratch,
@@ -455,7 +456,7 @@ pub fn replan<N: Networks, R: Rng + Clone>(
     result
 }
 
-/// [`replan`] for many sessions of one policy at once, with the same result for each as alone:
+/// `replan` for many sessions of one policy at once, with the same result for each as alone:
 /// every round evaluates the actor, the critics and the model over all sessions that need them.
 /// Old actions are tested in chunks (the model's rollout over them first, then one actor and
 /// one critic evaluation for the whole chunk); the outcome, the plan and the rng draws are those

@@ -8,7 +8,7 @@ use rand_distr::StandardNormal;
 
 use super::{Growth, Networks, NonFinite, ReplanJob, ReplanOutcome};
 
-/// Replan for one session, as the paper writes it. Allocates; use [`super::replan`] to serve.
+/// Replan for one session, as the paper writes it. Allocates; use `replan` to serve.
 pub fn reference_replan<N: Networks, R: Rng>(
     nets: &mut N,
     job: ReplanJob<'_, R>,

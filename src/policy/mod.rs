@@ -8,26 +8,26 @@ use crate::nn::{Dense, Mlp, MlpScratch, resize};
 use crate::plan::{MAX_CHUNK, Networks};
 
 /// SB3 clamps log_std to this range.
-pub const LOG_STD_MIN: f32 = -20.0;
-pub const LOG_STD_MAX: f32 = 2.0;
+pub(crate) const LOG_STD_MIN: f32 = -20.0;
+pub(crate) const LOG_STD_MAX: f32 = 2.0;
 
 /// The actor: `latent = trunk(obs)`, `mu = W_mu latent`. A Gaussian actor also has
 /// `log_std = W_ls latent` and acts `tanh(mu + exp(log_std) * noise)`; the others (gSDE, TD3,
 /// DDPG; `ActorKind`) act `tanh(clip(mu))` whatever the noise.
 #[derive(Clone, Debug)]
-pub struct Actor {
+pub(crate) struct Actor {
     /// SB3's `latent_pi` (ends in an activation).
-    pub trunk: Mlp,
-    pub mu: Dense,
+    pub(crate) trunk: Mlp,
+    pub(crate) mu: Dense,
     /// The Gaussian's log-std head; None for actors without one.
-    pub log_std: Option<Dense>,
+    pub(crate) log_std: Option<Dense>,
     /// The clip of the mean before tanh (gSDE's `clip_mean`); infinite where there is none.
-    pub mean_clip: f32,
+    pub(crate) mean_clip: f32,
 }
 
 impl Actor {
     /// Whether a sampled action differs from the deterministic one.
-    pub fn samples(&self) -> bool {
+    pub(crate) fn samples(&self) -> bool {
         self.log_std.is_some()
     }
 }
@@ -35,8 +35,8 @@ impl Actor {
 /// Predicts `s' = s + denormalise(net(normalise(s), normalise(a)))`.
 #[derive(Clone, Debug)]
 pub struct DynamicsModel {
-    pub net: Mlp,
-    pub normalization: Normalization,
+    pub(crate) net: Mlp,
+    pub(crate) normalization: Normalization,
 }
 
 #[derive(Clone, Debug)]
@@ -44,8 +44,8 @@ pub struct Policy {
     pub manifest: Manifest,
     /// "sha256:<hex>" of the bundle file it came from.
     pub content_hash: String,
-    pub actor: Actor,
-    pub critics: Vec<Mlp>,
+    pub(crate) actor: Actor,
+    pub(crate) critics: Vec<Mlp>,
     /// None for a bundle without a dynamics model (which cannot imagine plans).
     pub model: Option<DynamicsModel>,
 }
@@ -69,7 +69,7 @@ impl Policy {
     }
 
     /// Maps an action from the action bounds to [-1, 1].
-    pub fn scale_action(&self, action: &[f32], out: &mut [f32]) {
+    pub(crate) fn scale_action(&self, action: &[f32], out: &mut [f32]) {
         let (lo, hi) = (&self.manifest.action_low, &self.manifest.action_high);
         for i in 0..action.len() {
             out[i] = scale_component(lo[i], hi[i], action[i]);
@@ -80,13 +80,18 @@ impl Policy {
     /// that survives the trip to the action bounds and back: `scale(unscale(s)) == s` in f32. A
     /// client holds its plan in the action bounds; resumed from it, the plan's squashed actions
     /// are then the very ones the uninterrupted session holds. Allocates nothing.
-    pub fn make_actions_round_trip(&self, actions: &mut [f32]) {
+    pub(crate) fn make_actions_round_trip(&self, actions: &mut [f32]) {
         let (lo, hi) = (&self.manifest.action_low, &self.manifest.action_high);
         let act_dim = lo.len();
         for (k, s) in actions.iter_mut().enumerate() {
             let i = k % act_dim;
             *s = round_trip_fixed_point(lo[i], hi[i], *s);
         }
+    }
+
+    /// How many critics it has.
+    pub fn critic_count(&self) -> usize {
+        self.critics.len()
     }
 
     /// FLOPs of one evaluation of the actor (mean only), of one critic, and of the model.
@@ -169,7 +174,7 @@ impl Evaluator {
             policy,
         }
     }
-    pub fn policy(&self) -> &Arc<Policy> {
+    pub(crate) fn policy(&self) -> &Arc<Policy> {
         &self.policy
     }
 }
@@ -282,14 +287,14 @@ fn normalize<'a>(scale: &Option<ObsScale>, obs: &'a [f32], out: &'a mut Vec<f32>
 /// A bundle's observation normalisation ready to apply: `clip((s - mean) / sqrt(var + eps))`
 /// per feature, as SB3's VecNormalize computes it. The server and training share it.
 #[derive(Clone, Debug)]
-pub struct ObsScale {
+pub(crate) struct ObsScale {
     mean: Vec<f32>,
     inverse_std: Vec<f32>,
     clip: f32,
 }
 
 impl ObsScale {
-    pub fn new(normalization: &ObsNormalization) -> ObsScale {
+    pub(crate) fn new(normalization: &ObsNormalization) -> ObsScale {
         ObsScale {
             mean: normalization.mean.clone(),
             inverse_std: normalization.inverse_std(),
@@ -298,7 +303,7 @@ impl ObsScale {
     }
 
     /// Appends the normalised rows of `obs` (rows of the normalisation's width) to `out`.
-    pub fn extend_normalized(&self, obs: &[f32], out: &mut Vec<f32>) {
+    pub(crate) fn extend_normalized(&self, obs: &[f32], out: &mut Vec<f32>) {
         let clip = self.clip;
         for row in obs.chunks_exact(self.mean.len()) {
             out.extend(

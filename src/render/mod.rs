@@ -14,10 +14,10 @@ use crate::domains::{Part, Scene, Shape};
 pub mod chart;
 
 const FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
-pub const FONT_FAMILY: &str = "sans-serif";
+pub(crate) const FONT_FAMILY: &str = "sans-serif";
 
 /// Registers the embedded font with plotters (once per process).
-pub fn register_font() {
+pub(crate) fn register_font() {
     static ONCE: Once = Once::new();
     ONCE.call_once(|| {
         // The font is a valid TrueType file compiled into the binary.

@@ -20,7 +20,7 @@ impl Arrival {
 
     /// The place the transport stamped on a request, or the next one for a request that did not
     /// come through it.
-    pub fn of(extensions: &http::Extensions) -> Arrival {
+    pub(crate) fn of(extensions: &http::Extensions) -> Arrival {
         extensions.get().copied().unwrap_or_else(Arrival::next)
     }
 }

@@ -24,14 +24,14 @@ use crate::proto;
 
 /// Settings of the batch workers.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct BatchConfig {
+pub(crate) struct BatchConfig {
     /// Most steps replanned together.
-    pub max_batch: usize,
+    pub(crate) max_batch: usize,
     /// How long a worker waits for more steps after the first (0: take only what is queued).
-    pub window: Duration,
+    pub(crate) window: Duration,
     /// Steps waiting at most; beyond, requests are refused (RESOURCE_EXHAUSTED).
-    pub queue: usize,
-    pub workers: usize,
+    pub(crate) queue: usize,
+    pub(crate) workers: usize,
 }
 
 /// A step's answer: the response and the session's steps served with it (to take it back).

@@ -29,14 +29,14 @@ macro_rules! settings {
         pub struct ServeArgs {
             /// TOML file with any of the keys below (snake_case, e.g. max_sessions = 64).
             #[arg(long)]
-            pub config: Option<PathBuf>,
+            pub(crate) config: Option<PathBuf>,
             /// Refuse to start if any bundle fails to load (default: skip it with an error).
             #[arg(long)]
-            pub strict: bool,
+            pub(crate) strict: bool,
             $(
                 #[doc = $help]
                 #[arg(long, value_parser = $parse, help = concat!($help, " [default: ", $default, "]"))]
-                pub $name: Option<$ty>,
+                pub(crate) $name: Option<$ty>,
             )*
         }
 
@@ -194,27 +194,27 @@ fn log_format(text: &str) -> Result<LogFormat, String> {
 /// The settings in force.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ServeConfig {
-    pub listen: SocketAddr,
-    pub bundles: PathBuf,
-    pub max_sessions: usize,
-    pub session_ttl: Duration,
-    pub drain_timeout: Duration,
+    pub(crate) listen: SocketAddr,
+    pub(crate) bundles: PathBuf,
+    pub(crate) max_sessions: usize,
+    pub(crate) session_ttl: Duration,
+    pub(crate) drain_timeout: Duration,
     pub log_format: LogFormat,
-    pub strict: bool,
-    pub max_horizon_limit: usize,
+    pub(crate) strict: bool,
+    pub(crate) max_horizon_limit: usize,
     /// Cross-session batching; None when off.
-    pub batch: Option<BatchConfig>,
-    pub auth_tokens: Option<PathBuf>,
+    pub(crate) batch: Option<BatchConfig>,
+    pub(crate) auth_tokens: Option<PathBuf>,
     /// Certificate chain and key (PEM) when serving TLS.
-    pub tls: Option<(PathBuf, PathBuf)>,
+    pub(crate) tls: Option<(PathBuf, PathBuf)>,
     /// Where to serve Prometheus metrics; None when off.
-    pub metrics_listen: Option<SocketAddr>,
+    pub(crate) metrics_listen: Option<SocketAddr>,
     /// Where to serve plaintext grpc.health.v1 alone; None when off.
-    pub health_listen: Option<SocketAddr>,
+    pub(crate) health_listen: Option<SocketAddr>,
     /// Limits on client connections (the metrics endpoint's too).
-    pub connections: Limits,
+    pub(crate) connections: Limits,
     /// Limits on requests in transit.
-    pub requests: RequestLimits,
+    pub(crate) requests: RequestLimits,
 }
 
 impl Default for ServeConfig {

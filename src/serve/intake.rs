@@ -55,22 +55,22 @@ const STREAMED_REQUESTS: [&str; 3] = [
 
 /// The limits on requests in transit.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct RequestLimits {
+pub(crate) struct RequestLimits {
     /// A request (unary) or a message of it (streamed) must complete this soon.
-    pub request_timeout: Duration,
+    pub(crate) request_timeout: Duration,
     /// Declared bytes of unfinished messages one connection may hold.
-    pub bytes_per_connection: usize,
+    pub(crate) bytes_per_connection: usize,
     /// The same over all connections.
-    pub bytes_total: usize,
+    pub(crate) bytes_total: usize,
     /// `--max-message-bytes`; None follows the loaded bundles.
-    pub max_message_bytes: Option<usize>,
+    pub(crate) max_message_bytes: Option<usize>,
 }
 
 /// The largest requests the loaded bundles allow: an OpenSession's, and every other prac.v1 call's.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(super) struct RequestSizes {
-    pub open_session: usize,
-    pub other: usize,
+    pub(crate) open_session: usize,
+    pub(crate) other: usize,
 }
 
 impl Default for RequestSizes {

@@ -48,11 +48,11 @@ pub(super) struct Metrics {
 /// What a served step's answer says, as the metrics count it.
 pub(super) struct StepAnswer {
     /// Committed actions in the forecast.
-    pub forecast_length: usize,
+    pub(crate) forecast_length: usize,
     /// f_t of the action executed now.
-    pub f_t: u64,
+    pub(crate) f_t: u64,
     /// Whether the previous plan failed the critic's test.
-    pub broke: bool,
+    pub(crate) broke: bool,
 }
 
 /// Where a step was replanned.

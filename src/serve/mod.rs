@@ -24,14 +24,11 @@ use tokio::net::TcpListener;
 use tokio_util::sync::CancellationToken;
 use tonic_health::ServingStatus;
 
-pub use arrival::Arrival;
 pub use config::{LogFormat, ServeArgs, ServeConfig, duration, socket_address};
-pub use intake::RequestLimits;
 use registry::Registry;
 pub use registry::servable;
 use service::{PracService, ServerState};
 use session::Sessions;
-pub use session::{Session, SessionSettings, StepInput};
 
 use crate::proto::{self, prac_server::PracServer};
 
@@ -191,12 +188,12 @@ async fn reload_on_hangup(
 }
 
 /// The listeners and what the transport needs, made ready before any bundle loads.
-pub struct Bound {
-    pub grpc: TcpListener,
+pub(crate) struct Bound {
+    pub(crate) grpc: TcpListener,
     /// The Prometheus endpoint's, when asked for.
-    pub metrics: Option<TcpListener>,
+    pub(crate) metrics: Option<TcpListener>,
     /// The plaintext health port's, when asked for.
-    pub health: Option<TcpListener>,
+    pub(crate) health: Option<TcpListener>,
     tls: Option<tokio_rustls::TlsAcceptor>,
     auth: Option<auth::Tokens>,
     limits: transport::Limits,
@@ -209,7 +206,7 @@ pub struct Bound {
 /// Reads what the settings name (token file, certificate, bundle directory) and binds the
 /// listeners. Anything wrong stops the server here, before its ready line: a supervisor waiting
 /// for `listening on` must not see it from a server that is about to exit.
-pub async fn bind(config: &ServeConfig) -> anyhow::Result<Bound> {
+pub(crate) async fn bind(config: &ServeConfig) -> anyhow::Result<Bound> {
     // A bad token file stops the server: starting without the auth it was asked for is worse.
     let auth = config
         .auth_tokens
@@ -317,7 +314,7 @@ struct Health {
 
 /// The health service that answers SERVING for as long as the process answers at all: a
 /// liveness probe's, where `""` and `prac.v1.Prac` (readiness) follow the bundles and the drain.
-pub const LIVENESS_SERVICE: &str = "liveness";
+pub(crate) const LIVENESS_SERVICE: &str = "liveness";
 
 impl Health {
     async fn set(&self, status: ServingStatus) {
@@ -335,7 +332,7 @@ impl Health {
 /// Serves on `bound` until `shutdown` resolves, then drains for up to the drain timeout: health
 /// goes NOT_SERVING first, open streams end with UNAVAILABLE. Bundles load from the settings'
 /// directory while the listener already accepts (answering UNAVAILABLE until they are in).
-pub async fn serve(
+pub(crate) async fn serve(
     bound: Bound,
     config: &ServeConfig,
     shutdown: impl Future<Output = ()> + Send + 'static,

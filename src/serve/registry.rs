@@ -17,8 +17,8 @@ pub(super) struct Registry {
 
 /// The bundles of a directory that loaded, and the errors of those that did not.
 pub(super) struct Loaded {
-    pub registry: Registry,
-    pub errors: Vec<BundleError>,
+    pub(crate) registry: Registry,
+    pub(crate) errors: Vec<BundleError>,
 }
 
 /// Loads a bundle the way the server serves it: fully validated, with a dynamics model.
@@ -220,13 +220,13 @@ impl Registry {
 /// What a reload changed, by policy name.
 #[derive(Debug, Default)]
 pub(super) struct ReloadReport {
-    pub added: Vec<String>,
-    pub replaced: Vec<String>,
-    pub unchanged: Vec<String>,
-    pub removed: Vec<String>,
+    pub(crate) added: Vec<String>,
+    pub(crate) replaced: Vec<String>,
+    pub(crate) unchanged: Vec<String>,
+    pub(crate) removed: Vec<String>,
     /// Policies whose new file is broken: the old version stays.
-    pub kept_old: Vec<String>,
-    pub errors: Vec<BundleError>,
+    pub(crate) kept_old: Vec<String>,
+    pub(crate) errors: Vec<BundleError>,
 }
 
 #[cfg(test)]

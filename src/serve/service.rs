@@ -30,20 +30,20 @@ use crate::proto::{self, prac_server::Prac};
 /// What the handlers share.
 pub(super) struct ServerState {
     /// None until the bundles are loaded.
-    pub registry: RwLock<Option<Arc<Registry>>>,
-    pub sessions: Arc<Sessions>,
-    pub max_horizon_limit: usize,
+    pub(crate) registry: RwLock<Option<Arc<Registry>>>,
+    pub(crate) sessions: Arc<Sessions>,
+    pub(crate) max_horizon_limit: usize,
     /// Largest message; sessions whose plans could not fit a response are refused.
-    pub max_message_bytes: usize,
+    pub(crate) max_message_bytes: usize,
     /// Cancelled at shutdown: open streams end with UNAVAILABLE.
-    pub shutdown: CancellationToken,
+    pub(crate) shutdown: CancellationToken,
     /// Cross-session batching; None replans each step in its request handler.
-    pub batcher: Option<Batcher>,
+    pub(crate) batcher: Option<Batcher>,
     /// Bearer tokens; None when auth is off.
-    pub auth: Option<Arc<super::auth::Tokens>>,
+    pub(crate) auth: Option<Arc<super::auth::Tokens>>,
     /// Requests in transit: their sizes, buffered bytes and timeouts.
-    pub intake: Arc<super::intake::Intake>,
-    pub metrics: Arc<super::metrics::Metrics>,
+    pub(crate) intake: Arc<super::intake::Intake>,
+    pub(crate) metrics: Arc<super::metrics::Metrics>,
 }
 
 impl From<SessionError> for Status {
@@ -298,7 +298,7 @@ impl TakeBack {
 
 #[derive(Clone)]
 pub(super) struct PracService {
-    pub state: Arc<ServerState>,
+    pub(crate) state: Arc<ServerState>,
 }
 
 type ResponseStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;

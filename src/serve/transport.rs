@@ -42,17 +42,17 @@ use super::intake::{ConnectionIntake, Intake};
 
 /// Limits on the connections of one listener.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Limits {
-    pub max_connections: usize,
-    pub max_streams_per_connection: u32,
+pub(crate) struct Limits {
+    pub(crate) max_connections: usize,
+    pub(crate) max_streams_per_connection: u32,
     /// From accept to the first request (TLS handshake and HTTP/2 preface included).
-    pub handshake_timeout: Duration,
+    pub(crate) handshake_timeout: Duration,
     /// A connection with no call in flight this long is closed; None keeps it.
-    pub idle_timeout: Option<Duration>,
+    pub(crate) idle_timeout: Option<Duration>,
     /// HTTP/2 PING interval; None sends none.
-    pub keepalive_interval: Option<Duration>,
+    pub(crate) keepalive_interval: Option<Duration>,
     /// A PING unanswered this long closes the connection.
-    pub keepalive_timeout: Duration,
+    pub(crate) keepalive_timeout: Duration,
 }
 
 /// Receive window of one stream. A StepStream whose client stops reading its responses stalls
@@ -75,17 +75,17 @@ const MAX_HEADER_LIST_BYTES: u32 = 16 * 1024;
 /// Connection counts, for the metrics and logs.
 #[derive(Debug, Default)]
 pub(super) struct ConnectionStats {
-    pub open: AtomicU64,
-    pub refused_at_cap: AtomicU64,
-    pub handshake_timeouts: AtomicU64,
-    pub tls_failures: AtomicU64,
-    pub idle_closed: AtomicU64,
-    pub accept_errors: AtomicU64,
+    pub(crate) open: AtomicU64,
+    pub(crate) refused_at_cap: AtomicU64,
+    pub(crate) handshake_timeouts: AtomicU64,
+    pub(crate) tls_failures: AtomicU64,
+    pub(crate) idle_closed: AtomicU64,
+    pub(crate) accept_errors: AtomicU64,
     /// Connections closed to admit a newer one at the cap.
-    pub shed: AtomicU64,
+    pub(crate) shed: AtomicU64,
     /// Calls in flight over all connections, and the most since the memory keeper last looked.
-    pub calls_in_flight: AtomicU64,
-    pub calls_in_flight_peak: AtomicU64,
+    pub(crate) calls_in_flight: AtomicU64,
+    pub(crate) calls_in_flight_peak: AtomicU64,
 }
 
 /// How long the accept loop waits for a shed connection to give back its slot.
@@ -146,8 +146,8 @@ impl Drop for Probation {
 
 /// What the accept loop hands over with a connection: the slot that counts it and its probation.
 pub(super) struct Admitted {
-    pub permit: OwnedSemaphorePermit,
-    pub probation: Probation,
+    pub(crate) permit: OwnedSemaphorePermit,
+    pub(crate) probation: Probation,
 }
 
 /// Descriptors kept for bundles, logs, listeners and the metrics endpoint.

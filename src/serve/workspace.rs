@@ -10,8 +10,8 @@ use crate::policy::{Evaluator, Policy};
 
 /// One policy's networks with their buffers, and Replan's buffers.
 pub(crate) struct Workspace {
-    pub evaluator: Evaluator,
-    pub scratch: ReplanScratch,
+    pub(crate) evaluator: Evaluator,
+    pub(crate) scratch: ReplanScratch,
 }
 
 pub(crate) struct Workspaces {

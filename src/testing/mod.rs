@@ -1,6 +1,8 @@
 //! Fixtures for tests, benchmarks and fuzzing: random policies of a given architecture, the
 //! toy policy the tests serve, and the fuzz targets. Not part of prac's API.
 
+use std::time::{Duration, Instant};
+
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -11,12 +13,28 @@ use crate::manifest::{
 use crate::nn::{Activation, Dense, Mlp};
 use crate::policy::{Actor, DynamicsModel, Policy};
 
+#[cfg(any(test, feature = "fuzz"))]
 pub mod fuzz;
+
+/// The server's session and its step pipeline, for the allocation audit and the Replan bench.
+pub mod serve {
+    pub use crate::serve::arrival::Arrival;
+    pub use crate::serve::session::{Session, SessionSettings, StepInput};
+}
 
 /// Whether this thread is inside a call into the physics engine, where rapier allocates: the
 /// allocation audit counts those allocations apart from the domains' own.
 pub fn in_physics_engine() -> bool {
     crate::domains::in_engine()
+}
+
+/// Each critic's layer norms as (scale, shift) per hidden layer (empty without layer norm).
+pub fn critic_norms(policy: &Policy) -> Vec<Vec<(Vec<f32>, Vec<f32>)>> {
+    let norms = |critic: &Mlp| {
+        let each = |n: &crate::nn::LayerNorm| (n.scale().to_vec(), n.shift().to_vec());
+        critic.norms().iter().map(each).collect()
+    };
+    policy.critics.iter().map(norms).collect()
 }
 
 /// Observation and action sizes of the toy policy.
@@ -156,4 +174,42 @@ pub fn test_manifest(
             date: "1970-01-01T00:00:00Z".to_string(),
         },
     }
+}
+
+/// The MLP kernel alone: one Hopper-sized critic (18 inputs, [256, 256] ReLU, 1 output) over
+/// `rows` states at a time.
+pub struct KernelRow {
+    pub rows: usize,
+    pub micros_per_call: f64,
+    pub gflops: f64,
+}
+
+/// Times the critic's forward at each batch size for `per_case` wall time.
+pub fn critic_kernel(batch_rows: &[usize], per_case: Duration) -> Vec<KernelRow> {
+    let policy = random_policy(hopper_sized_manifest(), 3);
+    let critic = &policy.critics[0];
+    let mut scratch = critic.scratch();
+    batch_rows
+        .iter()
+        .map(|&rows| {
+            let inputs: Vec<f32> = (0..rows * critic.input_dim())
+                .map(|i| (i as f32 * 0.37).sin())
+                .collect();
+            std::hint::black_box(critic.forward_rows(&inputs, &mut scratch));
+            let start = Instant::now();
+            let mut calls = 0u64;
+            while start.elapsed() < per_case {
+                std::hint::black_box(
+                    critic.forward_rows(std::hint::black_box(&inputs), &mut scratch),
+                );
+                calls += 1;
+            }
+            let seconds = start.elapsed().as_secs_f64();
+            KernelRow {
+                rows,
+                micros_per_call: seconds * 1e6 / calls as f64,
+                gflops: (critic.flops() * rows as u64 * calls) as f64 / seconds / 1e9,
+            }
+        })
+        .collect()
 }

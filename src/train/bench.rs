@@ -15,20 +15,20 @@ use super::run::Trainer;
 use super::sac::{Batch, Sac, SacConfig};
 
 pub struct BenchTrain {
-    pub sac_update_ms: f64,
-    pub model_update_ms: f64,
-    pub train_domain: String,
-    pub train_steps: u64,
-    pub train_steps_per_s: f64,
-    pub replay: Option<ReplayTiming>,
+    pub(crate) sac_update_ms: f64,
+    pub(crate) model_update_ms: f64,
+    pub(crate) train_domain: String,
+    pub(crate) train_steps: u64,
+    pub(crate) train_steps_per_s: f64,
+    pub(crate) replay: Option<ReplayTiming>,
 }
 
 /// Saving and loading a replay buffer as checkpoints do.
-pub struct ReplayTiming {
-    pub transitions: usize,
-    pub bytes: u64,
-    pub save_ms: f64,
-    pub load_ms: f64,
+pub(crate) struct ReplayTiming {
+    pub(crate) transitions: usize,
+    pub(crate) bytes: u64,
+    pub(crate) save_ms: f64,
+    pub(crate) load_ms: f64,
 }
 
 /// Humanoid's observation and action sizes: the largest buffer of our domains.

@@ -10,7 +10,7 @@ use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
 use super::sac::Batch;
 
-pub struct ReplayBuffer {
+pub(crate) struct ReplayBuffer {
     obs_dim: usize,
     act_dim: usize,
     capacity: usize,
@@ -25,7 +25,7 @@ pub struct ReplayBuffer {
 
 impl ReplayBuffer {
     /// Storage grows with use up to `capacity` transitions.
-    pub fn new(obs_dim: usize, act_dim: usize, capacity: usize) -> ReplayBuffer {
+    pub(crate) fn new(obs_dim: usize, act_dim: usize, capacity: usize) -> ReplayBuffer {
         ReplayBuffer {
             obs_dim,
             act_dim,
@@ -40,16 +40,20 @@ impl ReplayBuffer {
         }
     }
 
-    pub fn len(&self) -> usize {
+    pub(crate) fn len(&self) -> usize {
         self.len
-    }
-    pub fn is_empty(&self) -> bool {
-        self.len == 0
     }
 
     /// Adds a transition, overwriting the oldest when full. `done` is termination only: a
     /// truncated episode still bootstraps from its last state.
-    pub fn push(&mut self, obs: &[f32], action: &[f32], reward: f32, next_obs: &[f32], done: bool) {
+    pub(crate) fn push(
+        &mut self,
+        obs: &[f32],
+        action: &[f32],
+        reward: f32,
+        next_obs: &[f32],
+        done: bool,
+    ) {
         let (od, ad) = (self.obs_dim, self.act_dim);
         let done = if done { 1.0 } else { 0.0 };
         if self.len < self.capacity {
@@ -71,7 +75,7 @@ impl ReplayBuffer {
     }
 
     /// A uniform sample (with replacement) of `size` transitions into `batch`.
-    pub fn sample<R: Rng>(&self, size: usize, rng: &mut R, batch: &mut Batch) {
+    pub(crate) fn sample<R: Rng>(&self, size: usize, rng: &mut R, batch: &mut Batch) {
         let (od, ad) = (self.obs_dim, self.act_dim);
         batch.len = size;
         for v in [
@@ -108,7 +112,8 @@ impl ReplayBuffer {
     }
 
     /// The transitions in insertion order (oldest first): obs, actions, next_obs.
-    pub fn transitions(&self) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+    #[cfg(test)]
+    pub(crate) fn transitions(&self) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
         let (od, ad) = (self.obs_dim, self.act_dim);
         let mut out = (Vec::new(), Vec::new(), Vec::new());
         for i in self.order() {
@@ -133,7 +138,7 @@ impl ReplayBuffer {
 
     /// Writes the transitions, oldest first, as safetensors tensors `obs` [n, obs_dim],
     /// `actions` [n, act_dim], `rewards` [n, 1], `next_obs` [n, obs_dim] and `dones` [n, 1].
-    pub fn save(&self, path: &Path) -> anyhow::Result<()> {
+    pub(crate) fn save(&self, path: &Path) -> anyhow::Result<()> {
         let data: Vec<(&str, usize, Vec<u8>)> = self
             .columns()
             .into_iter()
@@ -161,7 +166,7 @@ impl ReplayBuffer {
 
     /// Reads a buffer written by `save` into one of `capacity` (the newest transitions are kept
     /// when the file holds more).
-    pub fn load(
+    pub(crate) fn load(
         path: &Path,
         obs_dim: usize,
         act_dim: usize,

@@ -17,13 +17,13 @@ use super::model::{ModelStats, ModelTrainer};
 use super::options::{Progress, TrainOptions};
 use super::sac::Sac;
 
-pub const STATE_FILE: &str = "state.json";
-pub const REPLAY_FILE: &str = "replay.safetensors";
+pub(crate) const STATE_FILE: &str = "state.json";
+pub(crate) const REPLAY_FILE: &str = "replay.safetensors";
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct Saved {
-    pub options: TrainOptions,
-    pub progress: Progress,
+pub(crate) struct Saved {
+    pub(crate) options: TrainOptions,
+    pub(crate) progress: Progress,
 }
 
 #[derive(Serialize, Deserialize)]
@@ -50,7 +50,7 @@ fn complete(dir: &Path) -> Option<PathBuf> {
         .find(|d| d.join(STATE_FILE).is_file())
 }
 
-pub fn exists(dir: &Path) -> bool {
+pub(crate) fn exists(dir: &Path) -> bool {
     complete(dir).is_some()
 }
 
@@ -58,7 +58,7 @@ fn record_error(path: &Path, e: impl std::fmt::Display) -> anyhow::Error {
     anyhow::anyhow!("{}: {e}", path.display())
 }
 
-pub fn save(
+pub(crate) fn save(
     dir: &Path,
     saved: &Saved,
     sac: &Sac,
@@ -137,7 +137,7 @@ pub fn save(
 }
 
 /// Restores the learner and model in place; returns the saved options and counters.
-pub fn load(dir: &Path, sac: &mut Sac, model: &mut ModelTrainer) -> anyhow::Result<Saved> {
+pub(crate) fn load(dir: &Path, sac: &mut Sac, model: &mut ModelTrainer) -> anyhow::Result<Saved> {
     let dir = complete(dir).with_context(|| format!("no checkpoint in {}", dir.display()))?;
     let state_path = dir.join(STATE_FILE);
     let state: StateFile = serde_json::from_slice(&std::fs::read(&state_path)?)
@@ -218,7 +218,7 @@ pub fn load(dir: &Path, sac: &mut Sac, model: &mut ModelTrainer) -> anyhow::Resu
 }
 
 /// The replay buffer saved with the newest complete checkpoint, if it has one.
-pub fn load_replay(
+pub(crate) fn load_replay(
     dir: &Path,
     obs_dim: usize,
     act_dim: usize,

@@ -156,7 +156,7 @@ impl Transitions {
 }
 
 /// Splits rows into chains of consecutive transitions (next_obs of one is obs of the next).
-pub fn chains(obs: &[f32], next_obs: &[f32], od: usize) -> Vec<std::ops::Range<usize>> {
+pub(crate) fn chains(obs: &[f32], next_obs: &[f32], od: usize) -> Vec<std::ops::Range<usize>> {
     let n = obs.len() / od;
     let mut out = Vec::new();
     let mut start = 0;
@@ -171,23 +171,23 @@ pub fn chains(obs: &[f32], next_obs: &[f32], od: usize) -> Vec<std::ops::Range<u
 
 #[derive(Clone, Debug, Serialize)]
 pub struct FitReport {
-    pub train_transitions: usize,
-    pub heldout_transitions: usize,
-    pub gradient_steps: usize,
-    pub final_loss: f32,
+    pub(crate) train_transitions: usize,
+    pub(crate) heldout_transitions: usize,
+    pub(crate) gradient_steps: usize,
+    pub(crate) final_loss: f32,
     /// The bundle's model before fitting, when it had one.
-    pub before: Vec<ModelError>,
-    pub after: Vec<ModelError>,
+    pub(crate) before: Vec<ModelError>,
+    pub(crate) after: Vec<ModelError>,
     /// `after` over held-out windows whose actions were all the policy's own, and over windows
     /// with an exploratory action; only where the transitions say which rows explored.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub after_by_action: Option<ErrorsByAction>,
+    pub(crate) after_by_action: Option<ErrorsByAction>,
 }
 
 #[derive(Clone, Debug, Serialize)]
-pub struct ErrorsByAction {
-    pub on_policy: Vec<ModelError>,
-    pub exploratory: Vec<ModelError>,
+pub(crate) struct ErrorsByAction {
+    pub(crate) on_policy: Vec<ModelError>,
+    pub(crate) exploratory: Vec<ModelError>,
 }
 
 pub struct FitOptions {

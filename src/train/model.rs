@@ -19,21 +19,21 @@ const CONSTANT_FEATURE_STD: f64 = 1e-4;
 
 /// Welford running mean and variance per feature.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct RunningStats {
-    pub count: u64,
-    pub mean: Vec<f64>,
-    pub m2: Vec<f64>,
+pub(crate) struct RunningStats {
+    pub(crate) count: u64,
+    pub(crate) mean: Vec<f64>,
+    pub(crate) m2: Vec<f64>,
 }
 
 impl RunningStats {
-    pub fn new(dim: usize) -> RunningStats {
+    pub(crate) fn new(dim: usize) -> RunningStats {
         RunningStats {
             count: 0,
             mean: vec![0.0; dim],
             m2: vec![0.0; dim],
         }
     }
-    pub fn push(&mut self, values: &[f32]) {
+    pub(crate) fn push(&mut self, values: &[f32]) {
         self.count += 1;
         let n = self.count as f64;
         for (i, &v) in values.iter().enumerate() {
@@ -43,11 +43,11 @@ impl RunningStats {
             self.m2[i] += delta * (v - self.mean[i]);
         }
     }
-    pub fn mean_f32(&self) -> Vec<f32> {
+    pub(crate) fn mean_f32(&self) -> Vec<f32> {
         self.mean.iter().map(|&m| m as f32).collect()
     }
     /// Population standard deviations; 1 for a constant feature and before two samples.
-    pub fn std_f32(&self) -> Vec<f32> {
+    pub(crate) fn std_f32(&self) -> Vec<f32> {
         self.m2
             .iter()
             .map(|&m2| {
@@ -65,7 +65,7 @@ impl RunningStats {
     /// mean and population variance, with VecNormalize's clip 10 and epsilon 1e-8. A feature
     /// that has not varied (std below 1e-4) gets variance 1, as the model's normalisation gives
     /// it std 1: dividing by its float noise would make the networks hypersensitive to it.
-    pub fn obs_normalization(&self) -> ObsNormalization {
+    pub(crate) fn obs_normalization(&self) -> ObsNormalization {
         let std = self.std_f32();
         ObsNormalization {
             mean: self.mean_f32(),
@@ -78,28 +78,34 @@ impl RunningStats {
 
 /// Normalisation statistics of observations, actions and deltas.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ModelStats {
-    pub obs: RunningStats,
-    pub action: RunningStats,
-    pub delta: RunningStats,
+pub(crate) struct ModelStats {
+    pub(crate) obs: RunningStats,
+    pub(crate) action: RunningStats,
+    pub(crate) delta: RunningStats,
 }
 
 impl ModelStats {
-    pub fn new(obs_dim: usize, act_dim: usize) -> ModelStats {
+    pub(crate) fn new(obs_dim: usize, act_dim: usize) -> ModelStats {
         ModelStats {
             obs: RunningStats::new(obs_dim),
             action: RunningStats::new(act_dim),
             delta: RunningStats::new(obs_dim),
         }
     }
-    pub fn push(&mut self, obs: &[f32], action: &[f32], next_obs: &[f32], delta: &mut Vec<f32>) {
+    pub(crate) fn push(
+        &mut self,
+        obs: &[f32],
+        action: &[f32],
+        next_obs: &[f32],
+        delta: &mut Vec<f32>,
+    ) {
         delta.clear();
         delta.extend(next_obs.iter().zip(obs).map(|(n, o)| n - o));
         self.obs.push(obs);
         self.action.push(action);
         self.delta.push(delta);
     }
-    pub fn normalization(&self) -> Normalization {
+    pub(crate) fn normalization(&self) -> Normalization {
         Normalization {
             obs_mean: self.obs.mean_f32(),
             obs_std: self.obs.std_f32(),
@@ -112,18 +118,18 @@ impl ModelStats {
 }
 
 /// The model's network, optimiser and statistics.
-pub struct ModelTrainer {
-    pub obs_dim: usize,
-    pub act_dim: usize,
-    pub net: MlpNet,
-    pub optim: ModuleOptimizer,
-    pub stats: ModelStats,
-    pub learning_rate: f64,
+pub(crate) struct ModelTrainer {
+    pub(crate) obs_dim: usize,
+    pub(crate) act_dim: usize,
+    pub(crate) net: MlpNet,
+    pub(crate) optim: ModuleOptimizer,
+    pub(crate) stats: ModelStats,
+    pub(crate) learning_rate: f64,
     device: Device,
 }
 
 /// Normalised inputs `[(s - mu_s) / sd_s, (a - mu_a) / sd_a]` and targets for a batch.
-pub fn normalise_batch(
+pub(crate) fn normalise_batch(
     norm: &Normalization,
     obs: &[f32],
     actions: &[f32],
@@ -148,7 +154,7 @@ pub fn normalise_batch(
 }
 
 impl ModelTrainer {
-    pub fn new<R: Rng>(
+    pub(crate) fn new<R: Rng>(
         obs_dim: usize,
         act_dim: usize,
         hidden: &[usize],
@@ -167,32 +173,8 @@ impl ModelTrainer {
         }
     }
 
-    /// Starts from a bundle's model (its weights and normalisation as the only statistics).
-    pub fn from_model(model: &DynamicsModel, learning_rate: f64, device: &Device) -> ModelTrainer {
-        let norm = &model.normalization;
-        let (od, ad) = (norm.obs_mean.len(), norm.action_mean.len());
-        let mut stats = ModelStats::new(od, ad);
-        let seed = |s: &mut RunningStats, mean: &[f32], std: &[f32]| {
-            s.count = 2;
-            s.mean = mean.iter().map(|&m| f64::from(m)).collect();
-            s.m2 = std.iter().map(|&d| 2.0 * f64::from(d).powi(2)).collect();
-        };
-        seed(&mut stats.obs, &norm.obs_mean, &norm.obs_std);
-        seed(&mut stats.action, &norm.action_mean, &norm.action_std);
-        seed(&mut stats.delta, &norm.delta_mean, &norm.delta_std);
-        ModelTrainer {
-            obs_dim: od,
-            act_dim: ad,
-            net: MlpNet::from_mlp(&model.net, device),
-            optim: AdamConfig::new().with_epsilon(1e-8).init(),
-            stats,
-            learning_rate,
-            device: device.clone(),
-        }
-    }
-
     /// One Adam step on the squared error of the normalised delta; returns the loss.
-    pub fn update(&mut self, obs: &[f32], actions: &[f32], next_obs: &[f32]) -> f32 {
+    pub(crate) fn update(&mut self, obs: &[f32], actions: &[f32], next_obs: &[f32]) -> f32 {
         let n = obs.len() / self.obs_dim;
         let norm = self.stats.normalization();
         let (inputs, targets) = normalise_batch(&norm, obs, actions, next_obs);
@@ -207,7 +189,7 @@ impl ModelTrainer {
     }
 
     /// Widths of the hidden layers.
-    pub fn hidden(&self) -> Vec<usize> {
+    pub(crate) fn hidden(&self) -> Vec<usize> {
         let layers = &self.net.layers;
         layers[..layers.len() - 1]
             .iter()
@@ -216,7 +198,7 @@ impl ModelTrainer {
     }
 
     /// The model as the server evaluates it.
-    pub fn to_model(&self) -> DynamicsModel {
+    pub(crate) fn to_model(&self) -> DynamicsModel {
         DynamicsModel {
             net: self.net.to_mlp(self.obs_dim + self.act_dim, false),
             normalization: self.stats.normalization(),

@@ -13,11 +13,16 @@ use crate::policy::{Actor, LOG_STD_MAX, LOG_STD_MIN};
 /// ln(2 pi) / 2, for Gaussian log-densities.
 const HALF_LN_TWO_PI: f32 = 0.918_938_5;
 /// SB3's epsilon inside `log(1 - tanh(u)^2 + eps)`.
-pub const SQUASH_EPS: f32 = 1e-6;
+pub(crate) const SQUASH_EPS: f32 = 1e-6;
 
 /// One affine layer with PyTorch's default initialisation, U(+-1/sqrt(fan_in)) for weight and
 /// bias, drawn from `rng` so a seed fixes the whole run. Burn stores the weight as [in, out].
-pub fn linear<R: Rng>(inputs: usize, outputs: usize, rng: &mut R, device: &Device) -> Linear {
+pub(crate) fn linear<R: Rng>(
+    inputs: usize,
+    outputs: usize,
+    rng: &mut R,
+    device: &Device,
+) -> Linear {
     let bound = 1.0 / (inputs as f32).sqrt();
     let weight: Vec<f32> = (0..inputs * outputs)
         .map(|_| rng.random_range(-bound..bound))
@@ -29,7 +34,7 @@ pub fn linear<R: Rng>(inputs: usize, outputs: usize, rng: &mut R, device: &Devic
 }
 
 /// A layer from [in, out] row-major weights and its bias.
-pub fn linear_from(
+pub(crate) fn linear_from(
     inputs: usize,
     outputs: usize,
     weight: Vec<f32>,
@@ -49,7 +54,7 @@ pub fn linear_from(
 }
 
 /// Rows of `values` ([rows, cols]) as a tensor.
-pub fn matrix(values: &[f32], rows: usize, cols: usize, device: &Device) -> Tensor<2> {
+pub(crate) fn matrix(values: &[f32], rows: usize, cols: usize, device: &Device) -> Tensor<2> {
     Tensor::from_data(TensorData::new(values.to_vec(), [rows, cols]), device)
 }
 
@@ -62,7 +67,7 @@ fn values<const D: usize>(tensor: Tensor<D>) -> Vec<f32> {
 
 /// A burn layer as an inference layer (PyTorch [out, in] layout). Burn's [in, out] row-major
 /// weight is the column-major [out, in] matrix that [`Dense`] stores.
-pub fn to_dense(layer: &Linear) -> Dense {
+pub(crate) fn to_dense(layer: &Linear) -> Dense {
     let [inputs, outputs] = layer.weight.val().dims();
     let weight = values(layer.weight.val());
     let bias = layer
@@ -72,17 +77,6 @@ pub fn to_dense(layer: &Linear) -> Dense {
     Dense::new(
         nalgebra::DMatrix::from_column_slice(outputs, inputs, &weight),
         nalgebra::DVector::from_vec(bias),
-    )
-}
-
-/// An inference layer as a burn layer.
-pub fn from_dense(dense: &Dense, device: &Device) -> Linear {
-    linear_from(
-        dense.input_dim(),
-        dense.output_dim(),
-        dense.weight().as_slice().to_vec(),
-        dense.bias().as_slice().to_vec(),
-        device,
     )
 }
 
@@ -102,15 +96,15 @@ fn layer_norm_from(scale: &[f32], shift: &[f32], device: &Device) -> LayerNorm {
 /// Affine layers with ReLU between them (and after the last when `activate_output`), each
 /// hidden layer's output layer-normalised first when `norms` is not empty.
 #[derive(Module, Debug)]
-pub struct MlpNet {
-    pub layers: Vec<Linear>,
+pub(crate) struct MlpNet {
+    pub(crate) layers: Vec<Linear>,
     /// Empty, or one per hidden layer (checkpoints of chains without them hold none).
-    pub norms: Vec<LayerNorm>,
+    pub(crate) norms: Vec<LayerNorm>,
 }
 
 impl MlpNet {
     /// `inputs -> hidden... -> outputs` (no output layer when `outputs` is None).
-    pub fn new<R: Rng>(
+    pub(crate) fn new<R: Rng>(
         inputs: usize,
         hidden: &[usize],
         outputs: Option<usize>,
@@ -131,7 +125,7 @@ impl MlpNet {
 
     /// The chain with a layer norm (scale 1, shift 0, as PyTorch starts one) after each hidden
     /// layer.
-    pub fn with_layer_norms(mut self, device: &Device) -> MlpNet {
+    pub(crate) fn with_layer_norms(mut self, device: &Device) -> MlpNet {
         let hidden = self.layers.len().saturating_sub(1);
         self.norms = self.layers[..hidden]
             .iter()
@@ -143,7 +137,7 @@ impl MlpNet {
         self
     }
 
-    pub fn forward(&self, mut x: Tensor<2>, activate_output: bool) -> Tensor<2> {
+    pub(crate) fn forward(&self, mut x: Tensor<2>, activate_output: bool) -> Tensor<2> {
         let last = self.layers.len() - 1;
         for (i, layer) in self.layers.iter().enumerate() {
             x = layer.forward(x);
@@ -157,7 +151,7 @@ impl MlpNet {
         x
     }
 
-    pub fn to_mlp(&self, inputs: usize, activate_output: bool) -> Mlp {
+    pub(crate) fn to_mlp(&self, inputs: usize, activate_output: bool) -> Mlp {
         let mlp = Mlp::new(
             inputs,
             self.layers.iter().map(to_dense).collect(),
@@ -183,29 +177,18 @@ impl MlpNet {
         mlp.with_layer_norms(norms)
             .expect("a trained chain's norms fit it")
     }
-
-    pub fn from_mlp(mlp: &Mlp, device: &Device) -> MlpNet {
-        MlpNet {
-            layers: mlp.layers().iter().map(|d| from_dense(d, device)).collect(),
-            norms: mlp
-                .norms()
-                .iter()
-                .map(|n| layer_norm_from(n.scale(), n.shift(), device))
-                .collect(),
-        }
-    }
 }
 
 /// SB3's squashed Gaussian actor: a ReLU trunk, then mean and log-std heads.
 #[derive(Module, Debug)]
-pub struct ActorNet {
-    pub trunk: MlpNet,
-    pub mu: Linear,
-    pub log_std: Linear,
+pub(crate) struct ActorNet {
+    pub(crate) trunk: MlpNet,
+    pub(crate) mu: Linear,
+    pub(crate) log_std: Linear,
 }
 
 impl ActorNet {
-    pub fn new<R: Rng>(
+    pub(crate) fn new<R: Rng>(
         obs_dim: usize,
         act_dim: usize,
         hidden: &[usize],
@@ -224,7 +207,7 @@ impl ActorNet {
     /// A reparameterised sample `tanh(mu + std * noise)` and its log-probability ([n, 1]) under
     /// the squashed Gaussian, with the change-of-variables correction
     /// `- sum log(1 - tanh(u)^2 + 1e-6)`.
-    pub fn sample(&self, obs: Tensor<2>, noise: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
+    pub(crate) fn sample(&self, obs: Tensor<2>, noise: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
         let latent = self.trunk.forward(obs, true);
         let mu = self.mu.forward(latent.clone());
         let log_std = self.log_std.forward(latent).clamp(LOG_STD_MIN, LOG_STD_MAX);
@@ -238,12 +221,13 @@ impl ActorNet {
     }
 
     /// The deterministic action `tanh(mu)`.
-    pub fn mean_action(&self, obs: Tensor<2>) -> Tensor<2> {
+    #[cfg(test)]
+    pub(crate) fn mean_action(&self, obs: Tensor<2>) -> Tensor<2> {
         let latent = self.trunk.forward(obs, true);
         tanh(self.mu.forward(latent))
     }
 
-    pub fn to_actor(&self, obs_dim: usize) -> Actor {
+    pub(crate) fn to_actor(&self, obs_dim: usize) -> Actor {
         Actor {
             trunk: self.trunk.to_mlp(obs_dim, true),
             mu: to_dense(&self.mu),
@@ -255,14 +239,14 @@ impl ActorNet {
 
 /// Twin (or more) Q networks over `cat(obs, action)`.
 #[derive(Module, Debug)]
-pub struct CriticNet {
-    pub q: Vec<MlpNet>,
+pub(crate) struct CriticNet {
+    pub(crate) q: Vec<MlpNet>,
 }
 
 impl CriticNet {
     /// `layer_norm` puts a layer norm after each hidden layer (the regularised critics of
     /// sample-efficient SAC variants, which take more updates per step).
-    pub fn new<R: Rng>(
+    pub(crate) fn new<R: Rng>(
         obs_dim: usize,
         act_dim: usize,
         hidden: &[usize],
@@ -286,7 +270,7 @@ impl CriticNet {
     }
 
     /// Each critic's Q values ([n, 1] each).
-    pub fn forward(&self, obs: Tensor<2>, action: Tensor<2>) -> Vec<Tensor<2>> {
+    pub(crate) fn forward(&self, obs: Tensor<2>, action: Tensor<2>) -> Vec<Tensor<2>> {
         let input = Tensor::cat(vec![obs, action], 1);
         self.q
             .iter()
@@ -295,28 +279,19 @@ impl CriticNet {
     }
 
     /// The minimum over the critics ([n, 1]).
-    pub fn min_q(&self, obs: Tensor<2>, action: Tensor<2>) -> Tensor<2> {
+    pub(crate) fn min_q(&self, obs: Tensor<2>, action: Tensor<2>) -> Tensor<2> {
         self.forward(obs, action)
             .into_iter()
             .reduce(|a, b| a.min_pair(b))
             .expect("at least one critic")
     }
 
-    pub fn to_mlps(&self, input_dim: usize) -> Vec<Mlp> {
+    pub(crate) fn to_mlps(&self, input_dim: usize) -> Vec<Mlp> {
         self.q.iter().map(|q| q.to_mlp(input_dim, false)).collect()
     }
 
-    pub fn from_mlps(critics: &[Mlp], device: &Device) -> CriticNet {
-        CriticNet {
-            q: critics
-                .iter()
-                .map(|m| MlpNet::from_mlp(m, device))
-                .collect(),
-        }
-    }
-
     /// Polyak averaging `self = (1 - tau) self + tau online`, without autodiff (a target net).
-    pub fn soft_update(&mut self, online: &CriticNet, tau: f32) {
+    pub(crate) fn soft_update(&mut self, online: &CriticNet, tau: f32) {
         fn average<const D: usize>(t: &mut Param<Tensor<D>>, s: &Param<Tensor<D>>, tau: f32) {
             let v = t.val().mul_scalar(1.0 - tau) + s.val().without_autodiff().mul_scalar(tau);
             *t = Param::from_tensor(v);
@@ -340,12 +315,12 @@ impl CriticNet {
 
 /// The learned temperature, as SB3 keeps it: log(alpha).
 #[derive(Module, Debug)]
-pub struct EntropyCoef {
-    pub log_alpha: Param<Tensor<1>>,
+pub(crate) struct EntropyCoef {
+    pub(crate) log_alpha: Param<Tensor<1>>,
 }
 
 impl EntropyCoef {
-    pub fn new(initial: f32, device: &Device) -> EntropyCoef {
+    pub(crate) fn new(initial: f32, device: &Device) -> EntropyCoef {
         EntropyCoef {
             log_alpha: Param::from_tensor(Tensor::from_data(
                 TensorData::new(vec![initial.ln()], [1]),
@@ -353,17 +328,18 @@ impl EntropyCoef {
             )),
         }
     }
-    pub fn alpha(&self) -> f32 {
+    pub(crate) fn alpha(&self) -> f32 {
         values(self.log_alpha.val())[0].exp()
     }
 }
 
 /// Reads a [n, k] tensor back as row-major values.
-pub fn rows(tensor: Tensor<2>) -> Vec<f32> {
+#[cfg(test)]
+pub(crate) fn rows(tensor: Tensor<2>) -> Vec<f32> {
     values(tensor)
 }
 
 /// Reads a one-element tensor.
-pub fn scalar(tensor: Tensor<1>) -> f32 {
+pub(crate) fn scalar(tensor: Tensor<1>) -> f32 {
     values(tensor)[0]
 }

@@ -17,7 +17,7 @@ fn saves_replay() -> bool {
 /// Everything `prac train` takes.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct TrainOptions {
-    pub domain: String,
+    pub(crate) domain: String,
     pub steps: u64,
     pub seed: u64,
     /// > 0: act from the PrAC plan with eps = coef * (V_pi - V_rand).
@@ -27,7 +27,7 @@ pub struct TrainOptions {
     /// and V_pi is the critic's value of the current policy at each episode's first state.
     pub value_scale: Option<(f64, f64)>,
     pub sac: SacConfig,
-    pub out: PathBuf,
+    pub(crate) out: PathBuf,
     pub csv: PathBuf,
     pub eval_csv: PathBuf,
     pub checkpoint_dir: PathBuf,
@@ -76,7 +76,7 @@ impl TrainOptions {
 
     /// Refuses settings no run can use; `Trainer::new` calls it, so the library refuses what
     /// the command line refuses.
-    pub fn validate(&self) -> anyhow::Result<()> {
+    pub(crate) fn validate(&self) -> anyhow::Result<()> {
         anyhow::ensure!(
             self.epsilon_coef.is_finite() && self.epsilon_coef >= 0.0,
             "--epsilon-coef must be >= 0, got {}",
@@ -101,15 +101,15 @@ impl TrainOptions {
 pub struct Progress {
     pub step: u64,
     pub episode: u64,
-    pub gradient_steps: u64,
+    pub(crate) gradient_steps: u64,
     /// Transitions in the buffer since this process started: those it collected plus those
     /// restored from the checkpoint. Learning waits until they cover the warm-up.
     #[serde(skip)]
-    pub fresh_steps: u64,
-    pub v_rand: Option<f64>,
-    pub recent_returns: Vec<f64>,
-    pub recent_forecasts: Vec<f64>,
-    pub last_losses: SacLosses,
-    pub last_model_loss: f32,
-    pub seconds: f64,
+    pub(crate) fresh_steps: u64,
+    pub(crate) v_rand: Option<f64>,
+    pub(crate) recent_returns: Vec<f64>,
+    pub(crate) recent_forecasts: Vec<f64>,
+    pub(crate) last_losses: SacLosses,
+    pub(crate) last_model_loss: f32,
+    pub(crate) seconds: f64,
 }

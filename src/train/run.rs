@@ -32,28 +32,28 @@ use crate::policy::{Evaluator, ObsScale, Policy};
 /// What a finished run reports.
 #[derive(Clone, Debug, Serialize)]
 pub struct TrainReport {
-    pub steps: u64,
-    pub episodes: u64,
-    pub seconds: f64,
-    pub value_scale: ValueScale,
-    pub eval_return_mean: f64,
-    pub eval_return_std: f64,
+    pub(crate) steps: u64,
+    pub(crate) episodes: u64,
+    pub(crate) seconds: f64,
+    pub(crate) value_scale: ValueScale,
+    pub(crate) eval_return_mean: f64,
+    pub(crate) eval_return_std: f64,
     /// Of the deterministic evaluation's episodes, how many the task ended early (a fall).
-    pub eval_terminated: usize,
+    pub(crate) eval_terminated: usize,
     /// Their mean forward distance in metres (walkers).
-    pub eval_distance_mean: Option<f64>,
-    pub random_return_mean: f64,
-    pub model_errors: Vec<ModelError>,
-    pub out: PathBuf,
+    pub(crate) eval_distance_mean: Option<f64>,
+    pub(crate) random_return_mean: f64,
+    pub(crate) model_errors: Vec<ModelError>,
+    pub(crate) out: PathBuf,
 }
 
-pub const CSV_HEADER: &str = "step,episode,return,discounted_return,length,forecast,epsilon,critic_loss,actor_loss,model_loss,ent_coef";
+pub(crate) const CSV_HEADER: &str = "step,episode,return,discounted_return,length,forecast,epsilon,critic_loss,actor_loss,model_loss,ent_coef";
 /// Per evaluation: its returns, how many of its episodes the task ended early (falls), their
 /// mean forward distance (walkers; empty elsewhere) and the run's training seconds so far.
-pub const EVAL_CSV_HEADER: &str = "step,eval_return_mean,eval_return_std,eval_discounted_mean,eval_terminated,eval_distance_mean,seconds";
+pub(crate) const EVAL_CSV_HEADER: &str = "step,eval_return_mean,eval_return_std,eval_discounted_mean,eval_terminated,eval_distance_mean,seconds";
 
 /// Builds the manifest of a trained bundle.
-pub fn manifest(
+pub(crate) fn manifest(
     spec: &EnvSpec,
     config: &SacConfig,
     normalization: crate::bundle::Normalization,
@@ -99,7 +99,13 @@ pub fn manifest(
 }
 
 /// The learner's current networks as an inference policy.
-pub fn snapshot(sac: &Sac, model: &ModelTrainer, spec: &EnvSpec, steps: u64, seed: u64) -> Policy {
+pub(crate) fn snapshot(
+    sac: &Sac,
+    model: &ModelTrainer,
+    spec: &EnvSpec,
+    steps: u64,
+    seed: u64,
+) -> Policy {
     let input = spec.obs_dim + spec.act_dim;
     let mut manifest = manifest(spec, &sac.config, model.stats.normalization(), steps, seed);
     if let Some(m) = &mut manifest.model {
@@ -122,13 +128,13 @@ pub fn snapshot(sac: &Sac, model: &ModelTrainer, spec: &EnvSpec, steps: u64, see
 }
 
 pub struct Trainer {
-    pub options: TrainOptions,
+    pub(crate) options: TrainOptions,
     spec: EnvSpec,
     env: Box<dyn Env>,
     /// Evaluations play here, so the training episode goes on undisturbed.
     eval_env: Box<dyn Env>,
-    pub sac: Sac,
-    pub model: ModelTrainer,
+    pub(crate) sac: Sac,
+    pub(crate) model: ModelTrainer,
     buffer: ReplayBuffer,
     rng: ChaCha8Rng,
     pub progress: Progress,
@@ -549,7 +555,7 @@ impl Trainer {
         )
     }
 
-    pub fn checkpoint(&self) -> anyhow::Result<()> {
+    pub(crate) fn checkpoint(&self) -> anyhow::Result<()> {
         checkpoint::save(
             &self.options.checkpoint_dir,
             &checkpoint::Saved {

@@ -22,14 +22,14 @@ pub struct SacConfig {
     /// Environment steps between rounds of gradient steps.
     pub train_freq: u64,
     pub gradient_steps: usize,
-    pub ent_coef_init: f64,
+    pub(crate) ent_coef_init: f64,
     /// Defaults to -dim(A).
-    pub target_entropy: Option<f64>,
+    pub(crate) target_entropy: Option<f64>,
     pub hidden: Vec<usize>,
-    pub n_critics: usize,
+    pub(crate) n_critics: usize,
     /// The dynamics model (4 x 64 ReLU, Adam 1e-4, one step per SAC gradient step).
-    pub model_hidden: Vec<usize>,
-    pub model_learning_rate: f64,
+    pub(crate) model_hidden: Vec<usize>,
+    pub(crate) model_learning_rate: f64,
     /// Actor and critics see observations normalised by the running mean and variance of those
     /// seen so far, as the SB3 zoo's `normalize: true` (VecNormalize) does; the bundle carries
     /// the statistics as its `obs_normalization`. Off by default (absent in older checkpoints).
@@ -69,7 +69,7 @@ impl SacConfig {
     /// The paper's settings for a domain (section 4.1): SB3 defaults with gamma 0.98, and the
     /// zoo's overrides for Cheetah and Humanoid.
     /// Refuses settings SAC cannot learn with.
-    pub fn validate(&self) -> anyhow::Result<()> {
+    pub(crate) fn validate(&self) -> anyhow::Result<()> {
         anyhow::ensure!(
             self.gamma > 0.0 && self.gamma < 1.0,
             "--gamma must be in (0, 1), got {}",
@@ -89,7 +89,7 @@ impl SacConfig {
         Ok(())
     }
 
-    pub fn for_domain(domain: &str) -> SacConfig {
+    pub(crate) fn for_domain(domain: &str) -> SacConfig {
         let base = SacConfig::default();
         match domain {
             "cheetah" => SacConfig {
@@ -113,54 +113,59 @@ impl SacConfig {
 
 /// A minibatch of transitions, row-major; actions in [-1, 1] (the squashed space).
 #[derive(Clone, Debug, Default)]
-pub struct Batch {
-    pub len: usize,
-    pub obs: Vec<f32>,
-    pub actions: Vec<f32>,
-    pub rewards: Vec<f32>,
-    pub next_obs: Vec<f32>,
+pub(crate) struct Batch {
+    pub(crate) len: usize,
+    pub(crate) obs: Vec<f32>,
+    pub(crate) actions: Vec<f32>,
+    pub(crate) rewards: Vec<f32>,
+    pub(crate) next_obs: Vec<f32>,
     /// 1.0 where the episode terminated (not where it was truncated).
-    pub dones: Vec<f32>,
+    pub(crate) dones: Vec<f32>,
 }
 
 /// What one gradient step measured.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct SacLosses {
-    pub critic: f32,
-    pub actor: f32,
-    pub ent_coef: f32,
-    pub ent_coef_loss: f32,
+pub(crate) struct SacLosses {
+    pub(crate) critic: f32,
+    pub(crate) actor: f32,
+    pub(crate) ent_coef: f32,
+    pub(crate) ent_coef_loss: f32,
 }
 
 /// The learner: networks, target critics, temperature and their Adam optimisers.
-pub struct Sac {
-    pub config: SacConfig,
-    pub obs_dim: usize,
-    pub act_dim: usize,
-    pub device: Device,
-    pub actor: ActorNet,
-    pub critic: CriticNet,
+pub(crate) struct Sac {
+    pub(crate) config: SacConfig,
+    pub(crate) obs_dim: usize,
+    pub(crate) act_dim: usize,
+    pub(crate) device: Device,
+    pub(crate) actor: ActorNet,
+    pub(crate) critic: CriticNet,
     /// Polyak-averaged critics, without autodiff.
-    pub critic_target: CriticNet,
-    pub ent_coef: EntropyCoef,
-    pub actor_optim: ModuleOptimizer,
-    pub critic_optim: ModuleOptimizer,
-    pub ent_coef_optim: ModuleOptimizer,
+    pub(crate) critic_target: CriticNet,
+    pub(crate) ent_coef: EntropyCoef,
+    pub(crate) actor_optim: ModuleOptimizer,
+    pub(crate) critic_optim: ModuleOptimizer,
+    pub(crate) ent_coef_optim: ModuleOptimizer,
     target_entropy: f32,
 }
 
 /// Adam as SB3 configures it (PyTorch's eps 1e-8, no weight decay).
-pub fn adam() -> ModuleOptimizer {
+pub(crate) fn adam() -> ModuleOptimizer {
     AdamConfig::new().with_epsilon(1e-8).init()
 }
 
 /// The autodiff CPU device training runs on.
-pub fn train_device() -> Device {
+pub(crate) fn train_device() -> Device {
     Device::flex().autodiff()
 }
 
 impl Sac {
-    pub fn new<R: Rng>(config: SacConfig, obs_dim: usize, act_dim: usize, rng: &mut R) -> Sac {
+    pub(crate) fn new<R: Rng>(
+        config: SacConfig,
+        obs_dim: usize,
+        act_dim: usize,
+        rng: &mut R,
+    ) -> Sac {
         let device = train_device();
         let actor = ActorNet::new(obs_dim, act_dim, &config.hidden, rng, &device);
         let critic = CriticNet::new(
@@ -193,7 +198,7 @@ impl Sac {
     /// One gradient step on `batch` (SB3's order: temperature, critics, actor, targets).
     /// `noise` holds 2 x len x act_dim standard normal draws: the actor's samples at the
     /// observations, then at the next observations.
-    pub fn update(&mut self, batch: &Batch, noise: &[f32]) -> SacLosses {
+    pub(crate) fn update(&mut self, batch: &Batch, noise: &[f32]) -> SacLosses {
         let (n, od, ad) = (batch.len, self.obs_dim, self.act_dim);
         let dev = &self.device;
         let obs = matrix(&batch.obs, n, od, dev);
@@ -253,7 +258,7 @@ impl Sac {
 impl Sac {
     /// Critic targets `r + (1 - done) gamma (min target Q(s', a') - alpha log pi(a'|s'))`, with
     /// `a'` the actor's sample at `s'` for `noise_next`; no autodiff.
-    pub fn td_targets(
+    pub(crate) fn td_targets(
         &self,
         rewards: &Tensor<2>,
         dones: &Tensor<2>,

@@ -155,7 +155,8 @@ fn training_with_prac_commits_to_plans_and_fit_model_fits_a_model() {
     );
     let trained = prac::bundle::load(&out).unwrap();
     assert!(trained.manifest.critic.layer_norm);
-    assert!(trained.critics.iter().all(|c| c.norms().len() == 2));
+    let norms = prac::testing::critic_norms(&trained);
+    assert!(norms.iter().all(|critic| critic.len() == 2));
     let rows = curve(&dir.path().join("p.train.csv"));
     // Before learning starts actions are random (forecast 1); after, eps = 10 keeps plans.
     assert_eq!(rows[0].2, 1.0);
@@ -229,7 +230,7 @@ fn training_with_prac_commits_to_plans_and_fit_model_fits_a_model() {
     assert!(ten_step > one_step, "{report}");
     let refitted = prac::bundle::load(&fitted).unwrap();
     assert!(refitted.model.is_some());
-    assert_eq!(refitted.critics[1].norms(), trained.critics[1].norms());
+    assert_eq!(prac::testing::critic_norms(&refitted)[1], norms[1]);
     // Split by action: 160 held-out rows acted as the policy, 40 explored; every window is in
     // exactly one group.
     let split = &report["after_by_action"];

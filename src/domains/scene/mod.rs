@@ -32,7 +32,7 @@ pub struct Scene {
     pub shapes: Vec<(Part, Shape)>,
     /// Centre of the view and the extent that must be visible, in world units.
     pub center: (f64, f64),
-    pub width: f64,
+    pub(crate) width: f64,
     pub height: f64,
 }
 
@@ -42,7 +42,7 @@ fn point(pose: &Pose, p: Vector) -> (f64, f64) {
 }
 
 /// Every collider of a rapier world as shapes; `ground` ones are marked as ground.
-pub fn world_shapes(
+pub(crate) fn world_shapes(
     colliders: &ColliderSet,
     is_ground: impl Fn(ColliderHandle) -> bool,
 ) -> Vec<(Part, Shape)> {

@@ -40,29 +40,29 @@ pub enum StepError {
 
 /// A checked step, before its replan: its index and whether it starts an episode.
 #[derive(Clone, Copy, Debug)]
-pub struct Begun {
-    pub step: u64,
-    pub fresh: bool,
-    pub arrival: Arrival,
+pub(crate) struct Begun {
+    pub(crate) step: u64,
+    pub(crate) fresh: bool,
+    pub(crate) arrival: Arrival,
 }
 
 /// What one step did, for the response.
 #[derive(Clone, Copy, Debug)]
 pub struct StepReport {
-    pub outcome: ReplanOutcome,
-    pub step: u64,
-    pub episode: u64,
-    pub f_t: u64,
+    pub(crate) outcome: ReplanOutcome,
+    pub(crate) step: u64,
+    pub(crate) episode: u64,
+    pub(crate) f_t: u64,
     /// The session's steps served with this one, which names it for [`Session::take_back`].
-    pub served: u64,
+    pub(crate) served: u64,
 }
 
 pub struct Session {
-    pub id: String,
+    pub(crate) id: String,
     /// The caller that opened it (with auth on); only it may use the session.
-    pub owner: Option<String>,
-    pub policy: Arc<Policy>,
-    pub settings: SessionSettings,
+    pub(crate) owner: Option<String>,
+    pub(crate) policy: Arc<Policy>,
+    pub(crate) settings: SessionSettings,
     rng: ChaCha8Rng,
     /// The committed plan: its action(0) is the action of step `step`.
     commitment: Commitment,
@@ -182,7 +182,7 @@ impl Session {
         }
     }
 
-    pub fn steps_served(&self) -> u64 {
+    pub(crate) fn steps_served(&self) -> u64 {
         self.steps_served
     }
 
@@ -206,7 +206,7 @@ impl Session {
     /// Checks the observation and the step's arrival, and works out the step index; changes
     /// nothing. A step that arrived before the last applied one is refused: its caller sent a
     /// later step meanwhile (it gave up on this one, or sent both at once).
-    pub fn begin(
+    pub(crate) fn begin(
         &self,
         observation: &[f32],
         new_episode: bool,
@@ -244,7 +244,7 @@ impl Session {
 
     /// The Replan job of this step: the new plan goes to the spare buffer, so a failed replan
     /// leaves the committed plan as it was. `rng` is a copy of the session's, kept on commit.
-    pub fn job<'a>(
+    pub(crate) fn job<'a>(
         &'a mut self,
         observation: &'a [f32],
         begun: &Begun,
@@ -262,7 +262,12 @@ impl Session {
     }
 
     /// Makes the replanned plan the committed one.
-    pub fn commit(&mut self, begun: &Begun, outcome: ReplanOutcome, rng: ChaCha8Rng) -> StepReport {
+    pub(crate) fn commit(
+        &mut self,
+        begun: &Begun,
+        outcome: ReplanOutcome,
+        rng: ChaCha8Rng,
+    ) -> StepReport {
         self.before_last_commit = Some(BeforeCommit {
             rng: std::mem::replace(&mut self.rng, rng),
             step: self.step,
@@ -296,7 +301,7 @@ impl Session {
     /// Takes back the step that made `steps_served` reach `served`, if it is still the last one:
     /// its answer never reached the client (the caller gave up or its stream is gone), and a
     /// step the client was not answered must change nothing.
-    pub fn take_back(&mut self, served: u64) -> bool {
+    pub(crate) fn take_back(&mut self, served: u64) -> bool {
         if self.steps_served != served {
             return false;
         }
@@ -319,7 +324,7 @@ impl Session {
     /// executed at step `plan.start_step` and the rest is the commitment. Checked here for shape
     /// and sanity only; whether each action is still worth keeping is Replan's test at the next
     /// step. Predicted observations are not trusted: Replan rolls the model again.
-    pub fn resume(&mut self, plan: &proto::Plan) -> Result<(), String> {
+    pub(crate) fn resume(&mut self, plan: &proto::Plan) -> Result<(), String> {
         let (od, ad) = (self.policy.obs_dim(), self.policy.act_dim());
         let limit = self.settings.replan.max_horizon;
         if plan.actions.is_empty() {
@@ -382,7 +387,7 @@ impl Session {
     }
 
     /// A copy of the session's rng, for a job (kept only if the step commits).
-    pub fn rng(&self) -> ChaCha8Rng {
+    pub(crate) fn rng(&self) -> ChaCha8Rng {
         self.rng.clone()
     }
 
@@ -406,7 +411,7 @@ impl Session {
             .collect()
     }
 
-    pub fn response(&self, report: &StepReport) -> proto::StepResponse {
+    pub(crate) fn response(&self, report: &StepReport) -> proto::StepResponse {
         let forecast = self.planned_actions();
         proto::StepResponse {
             action: forecast[0].action.clone(),
@@ -420,7 +425,7 @@ impl Session {
     }
 
     /// The committed plan (empty before the first step).
-    pub fn plan_proto(&self) -> proto::Plan {
+    pub(crate) fn plan_proto(&self) -> proto::Plan {
         proto::Plan {
             session_id: self.id.clone(),
             episode: self.episode,
@@ -430,7 +435,7 @@ impl Session {
     }
 
     /// A receiver of every later plan change.
-    pub fn watch(&self) -> watch::Receiver<Arc<proto::Plan>> {
+    pub(crate) fn watch(&self) -> watch::Receiver<Arc<proto::Plan>> {
         self.plan_updates.subscribe()
     }
 }

@@ -104,7 +104,7 @@ impl SessionSettings {
         })
     }
 
-    pub fn to_proto(self) -> proto::ResolvedOptions {
+    pub(crate) fn to_proto(self) -> proto::ResolvedOptions {
         let (mode, n) = match self.replan.growth {
             Growth::Grow(k) => ("grow", k),
             Growth::Fixed(n) => ("fixed", n),

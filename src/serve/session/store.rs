@@ -12,7 +12,7 @@ use super::Session;
 use crate::policy::Policy;
 
 #[derive(Debug, thiserror::Error)]
-pub enum SessionError {
+pub(crate) enum SessionError {
     #[error("unknown session '{0}'; open one with OpenSession")]
     NotFound(String),
     #[error("session '{id}' was closed at {at}; open a new one with OpenSession")]
@@ -35,10 +35,10 @@ pub enum SessionError {
 
 pub(crate) struct SessionSlot {
     /// The session's policy (also in the session), readable without the lock.
-    pub policy: Arc<Policy>,
-    pub owner: Option<String>,
+    pub(crate) policy: Arc<Policy>,
+    pub(crate) owner: Option<String>,
     /// Its policy's step counter in the metrics.
-    pub steps_served: prometheus_client::metrics::counter::Counter,
+    pub(crate) steps_served: prometheus_client::metrics::counter::Counter,
     session: Mutex<Session>,
     /// When the session was last used (ms since the store's epoch); idle time starts here.
     last_used_ms: AtomicU64,
