@@ -1,3 +1,5 @@
 #![no_main]
 
-libfuzzer_sys::fuzz_target!(|data: &[u8]| prac::testing::fuzz::bundle_bytes(data));
+libfuzzer_sys::fuzz_target!(|data: &[u8]| {
+    prac::testing::fuzz::bundle_bytes(data);
+});

@@ -20,8 +20,8 @@ pub fn valid_bundle() -> Vec<u8> {
 }
 
 /// The bundle loader on arbitrary bytes, from memory and as a file reads it (header first):
-/// both must agree.
-pub fn bundle_bytes(data: &[u8]) {
+/// both must agree. Returns whether the bytes loaded.
+pub fn bundle_bytes(data: &[u8]) -> bool {
     let path = Path::new("fuzz.safetensors");
     let from_memory = bundle::from_bytes(data, path);
     let from_file = bundle::from_reader(std::io::Cursor::new(data), data.len() as u64, path);
@@ -32,9 +32,13 @@ pub fn bundle_bytes(data: &[u8]) {
         from_memory.as_ref().err(),
         from_file.as_ref().err()
     );
-    if let Ok(policy) = from_memory {
-        // What loads must also plan: one replan from a zero state.
-        plan_once(Arc::new(policy));
+    match from_memory {
+        Ok(policy) => {
+            // What loads must also plan: one replan from a zero state.
+            plan_once(Arc::new(policy));
+            true
+        }
+        Err(_) => false,
     }
 }
 
@@ -67,11 +71,12 @@ pub fn attack_manifests() -> Vec<Vec<u8>> {
 }
 
 /// The loader's manifest checks: the toy policy's tensors under an arbitrary manifest text.
-pub fn bundle_manifest(data: &[u8]) {
+/// Returns whether the bundle loaded.
+pub fn bundle_manifest(data: &[u8]) -> bool {
     let text = String::from_utf8_lossy(data);
     let bytes = bundle::to_bytes_with_manifest(&toy_policy("toy", 1), &text)
         .expect("serialising the toy tensors");
-    bundle_bytes(&bytes);
+    bundle_bytes(&bytes)
 }
 
 fn plan_once(policy: Arc<Policy>) {
@@ -146,10 +151,10 @@ struct Requests {
 
 /// Request handling against a loaded policy: arbitrary session options, an arbitrary resumed
 /// plan and arbitrary observations, through the server's own session code (what OpenSession and
-/// Step run, without the transport).
-pub fn requests(data: &[u8]) {
+/// Step run, without the transport). Returns whether some step was applied.
+pub fn requests(data: &[u8]) -> bool {
     let Ok(input) = Requests::arbitrary(&mut Unstructured::new(data)) else {
-        return;
+        return false;
     };
     let policy = Arc::new(toy_policy("toy", 1));
     let options = input.options.map(|o| proto::SessionOptions {
@@ -166,7 +171,7 @@ pub fn requests(data: &[u8]) {
         seed: o.seed,
     });
     let Ok(settings) = SessionSettings::resolve(options.as_ref(), &policy, 256) else {
-        return;
+        return false;
     };
     let mut session = Session::new("fuzz".into(), policy.clone(), settings);
     if let Some(resume) = input.resume {
@@ -188,6 +193,7 @@ pub fn requests(data: &[u8]) {
     }
     let mut evaluator = Evaluator::for_sessions(policy, 1);
     let mut scratch = ReplanScratch::new(3, 2);
+    let mut applied = false;
     for step in input.steps.iter().take(64) {
         let input = StepInput {
             observation: &step.observation,
@@ -195,6 +201,7 @@ pub fn requests(data: &[u8]) {
             arrival: crate::serve::arrival::Arrival::next(),
         };
         if let Ok(report) = session.apply_step(&mut evaluator, &mut scratch, input) {
+            applied = true;
             let response = session.response(&report);
             assert!(!response.forecast.is_empty() && response.forecast.len() <= 257);
             assert!(response.action.iter().all(|a| a.is_finite()));
@@ -205,16 +212,31 @@ pub fn requests(data: &[u8]) {
         }
         let _ = session.plan_proto();
     }
+    applied
 }
 
-/// A seeded stand-in for libFuzzer on stable: `runs` inputs made by flipping, inserting,
-/// deleting and splicing bytes of the seeds, fed to `target`. Returns how many ran.
-pub fn mutate_and_run(seeds: &[Vec<u8>], runs: usize, seed: u64, target: fn(&[u8])) -> usize {
+/// How a target took the mutated inputs: accepted (loaded, or served a step) or refused.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Outcomes {
+    pub accepted: usize,
+    pub refused: usize,
+}
+
+/// A seeded stand-in for libFuzzer on stable: the seeds, then `runs` inputs made by flipping,
+/// inserting, deleting and splicing bytes of the seeds, fed to `target`. Returns how the target
+/// took the mutated inputs.
+pub fn mutate_and_run(
+    seeds: &[Vec<u8>],
+    runs: usize,
+    seed: u64,
+    target: fn(&[u8]) -> bool,
+) -> Outcomes {
     use rand::{Rng, SeedableRng};
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     for seed in seeds {
         target(seed);
     }
+    let mut outcomes = Outcomes::default();
     for _ in 0..runs {
         let mut data = seeds[rng.random_range(0..seeds.len())].clone();
         for _ in 0..rng.random_range(1..8) {
@@ -246,9 +268,13 @@ pub fn mutate_and_run(seeds: &[Vec<u8>], runs: usize, seed: u64, target: fn(&[u8
                 }
             }
         }
-        target(&data);
+        if target(&data) {
+            outcomes.accepted += 1;
+        } else {
+            outcomes.refused += 1;
+        }
     }
-    seeds.len() + runs
+    outcomes
 }
 
 #[cfg(test)]
@@ -257,6 +283,24 @@ mod tests {
 
     fn manifest_seed() -> Vec<u8> {
         serde_json::to_vec(&toy_policy("toy", 1).manifest).unwrap()
+    }
+
+    /// Inputs that reach a step: random bytes rarely decode to 3 finite observation values, so
+    /// the seeds are the first 8 of a seeded stream of 256-byte strings that do (about 1 in 30).
+    fn request_seeds() -> Vec<Vec<u8>> {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let seeds: Vec<Vec<u8>> = (0..10_000)
+            .map(|_| {
+                let mut bytes = vec![0u8; 256];
+                rng.fill(&mut bytes[..]);
+                bytes
+            })
+            .filter(|bytes| requests(bytes))
+            .take(8)
+            .collect();
+        assert_eq!(seeds.len(), 8, "no request input reaches a step");
+        seeds
     }
 
     /// cargo-fuzz starts from fuzz/corpus/*; those seeds must stay valid as the format evolves
@@ -278,6 +322,13 @@ mod tests {
                 let file = root.join(format!("bundle_manifest/attack-{k}.json"));
                 std::fs::write(file, manifest).unwrap();
             }
+            for (k, seed) in request_seeds().into_iter().enumerate() {
+                std::fs::write(root.join(format!("requests/step-{k}")), seed).unwrap();
+            }
+        }
+        for k in 0..8 {
+            let seed = std::fs::read(root.join(format!("requests/step-{k}"))).unwrap();
+            assert!(requests(&seed), "fuzz/corpus/requests/step-{k} reaches no step");
         }
         let bytes = std::fs::read(&bundle_seed).unwrap();
         bundle::from_bytes(&bytes, &bundle_seed).unwrap();
@@ -289,20 +340,26 @@ mod tests {
     #[test]
     fn the_bundle_loader_survives_mutated_bundles() {
         let seeds = vec![valid_bundle(), Vec::new(), b"{}".to_vec()];
-        assert_eq!(mutate_and_run(&seeds, 3000, 1, bundle_bytes), 3003);
+        let outcomes = mutate_and_run(&seeds, 3000, 1, bundle_bytes);
+        // Both ways reached: mutations that still load (and plan), and ones refused.
+        assert!(outcomes.accepted > 0 && outcomes.refused > 0, "{outcomes:?}");
     }
 
     #[test]
     fn the_bundle_loader_survives_mutated_manifests() {
-        assert_eq!(
-            mutate_and_run(&[manifest_seed()], 3000, 2, bundle_manifest),
-            3001
-        );
+        let outcomes = mutate_and_run(&[manifest_seed()], 3000, 2, bundle_manifest);
+        assert!(outcomes.accepted > 0 && outcomes.refused > 0, "{outcomes:?}");
     }
 
     #[test]
     fn attack_manifests_are_refused_and_their_mutations_survived() {
         let attacks = attack_manifests();
+        // The committed seeds cargo-fuzz starts from are these attacks.
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/corpus/bundle_manifest");
+        for (k, manifest) in attacks.iter().enumerate() {
+            let committed = std::fs::read(root.join(format!("attack-{k}.json"))).unwrap();
+            assert_eq!(&committed, manifest, "fuzz/corpus/bundle_manifest/attack-{k}.json");
+        }
         for manifest in &attacks {
             let text = String::from_utf8_lossy(manifest);
             let bytes = bundle::to_bytes_with_manifest(&toy_policy("toy", 1), &text).unwrap();
@@ -311,18 +368,14 @@ mod tests {
                 "{text}"
             );
         }
-        assert_eq!(mutate_and_run(&attacks, 2000, 4, bundle_manifest), 2005);
+        let outcomes = mutate_and_run(&attacks, 2000, 4, bundle_manifest);
+        assert!(outcomes.refused > 0, "{outcomes:?}");
     }
 
     #[test]
     fn request_handling_survives_arbitrary_options_plans_and_observations() {
-        let seeds: Vec<Vec<u8>> = (0..8u8)
-            .map(|k| {
-                (0..256)
-                    .map(|i| (i as u8).wrapping_mul(31).wrapping_add(k))
-                    .collect()
-            })
-            .collect();
-        assert_eq!(mutate_and_run(&seeds, 3000, 3, requests), 3008);
+        let seeds = request_seeds();
+        let outcomes = mutate_and_run(&seeds, 3000, 3, requests);
+        assert!(outcomes.accepted > 0 && outcomes.refused > 0, "{outcomes:?}");
     }
 }
