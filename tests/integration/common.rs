@@ -33,12 +33,20 @@ pub struct Server {
 impl Server {
     /// Starts `prac serve --listen 127.0.0.1:0 --bundles DIR ARGS..` and waits for its address.
     pub fn start(bundles: &Path, args: &[&str]) -> Server {
-        let stderr_dir = tempfile::tempdir().unwrap();
-        let stderr_path = stderr_dir.path().join("stderr.log");
-        let mut child = Command::new(env!("CARGO_BIN_EXE_prac"))
+        let mut command = Command::new(env!("CARGO_BIN_EXE_prac"));
+        command
             .args(["serve", "--listen", "127.0.0.1:0", "--bundles"])
             .arg(bundles)
-            .args(args)
+            .args(args);
+        Server::spawn(command)
+    }
+
+    /// Runs `command` (a `prac serve` on 127.0.0.1:0, or a shell that execs one) and waits for
+    /// its address.
+    pub fn spawn(mut command: Command) -> Server {
+        let stderr_dir = tempfile::tempdir().unwrap();
+        let stderr_path = stderr_dir.path().join("stderr.log");
+        let mut child = command
             .stdout(Stdio::piped())
             .stderr(std::fs::File::create(&stderr_path).unwrap())
             .spawn()

@@ -80,17 +80,15 @@ async fn silent_connections_are_closed_and_the_cap_holds() {
 #[test]
 fn the_connection_cap_follows_the_open_file_limit() {
     let bundles = bundle_dir();
-    let out = std::process::Command::new("sh")
-        .arg("-c")
-        .arg(format!(
-            "ulimit -n 200 && exec {} serve --listen 127.0.0.1:0 --bundles {} --max-connections 5000 & \
-             pid=$!; sleep 1; kill $pid; wait $pid",
-            env!("CARGO_BIN_EXE_prac"),
-            bundles.path().display()
-        ))
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr);
+    let mut command = std::process::Command::new("sh");
+    command.arg("-c").arg(format!(
+        "ulimit -n 200 && exec {} serve --listen 127.0.0.1:0 --bundles {} --max-connections 5000",
+        env!("CARGO_BIN_EXE_prac"),
+        bundles.path().display()
+    ));
+    // The warning comes before the ready line.
+    let server = Server::spawn(command);
+    let stderr = server.stderr();
     assert!(
         stderr.contains("max_connections=136") && stderr.contains("ulimit -n"),
         "{stderr}"

@@ -8,6 +8,29 @@ fn png_size(bytes: &[u8]) -> (u32, u32) {
     (be(16), be(20))
 }
 
+/// How many pixels of the picture have exactly this colour.
+fn pixels_of(bytes: &[u8], colour: [u8; 3]) -> usize {
+    let picture = image::load_from_memory(bytes).unwrap().to_rgb8();
+    picture.pixels().filter(|p| p.0 == colour).count()
+}
+
+/// Pixels above row `rows` that are clearly red: the plan's colour, alone or faded.
+fn reddish_pixels_above(bytes: &[u8], rows: u32) -> usize {
+    let picture = image::load_from_memory(bytes).unwrap().to_rgb8();
+    let red = |p: &image::Rgb<u8>| {
+        let [r, g, b] = p.0.map(i32::from);
+        r > g + 60 && r > b + 60
+    };
+    let (width, _) = picture.dimensions();
+    (0..rows)
+        .flat_map(|y| (0..width).map(move |x| (x, y)))
+        .filter(|&(x, y)| red(picture.get_pixel(x, y)))
+        .count()
+}
+
+/// The robot's (or lander's, or pendulum's) colour in `prac render`.
+const BODY: [u8; 3] = [80, 90, 160];
+
 #[test]
 fn every_domain_renders_and_a_plan_is_overlaid() {
     let dir = tempfile::tempdir().unwrap();
@@ -26,7 +49,15 @@ fn every_domain_renders_and_a_plan_is_overlaid() {
             "{}",
             String::from_utf8_lossy(&run.stderr)
         );
-        assert_eq!(png_size(&std::fs::read(&out).unwrap()), (320, 200));
+        let bytes = std::fs::read(&out).unwrap();
+        assert_eq!(png_size(&bytes), (320, 200));
+        // The body is drawn, not only the frame around it.
+        let body = pixels_of(&bytes, BODY);
+        assert!(body >= 20, "{domain}: {body} body pixels");
+        if *domain == "pendulum" {
+            // Without a policy there is no plan to draw.
+            assert_eq!(reddish_pixels_above(&bytes, 200), 0);
+        }
         let env = prac::domains::make(domain).unwrap();
         assert!(
             env.scene()
@@ -62,7 +93,11 @@ fn every_domain_renders_and_a_plan_is_overlaid() {
         String::from_utf8_lossy(&run.stderr)
     );
     // The default size, its lower third the forecast panel.
-    assert_eq!(png_size(&std::fs::read(&out).unwrap()), (800, 640));
+    let bytes = std::fs::read(&out).unwrap();
+    assert_eq!(png_size(&bytes), (800, 640));
+    // The imagined states are drawn over the scene in the plan's red (faded with distance).
+    let plan = reddish_pixels_above(&bytes, 400);
+    assert!(plan >= 20, "{plan} plan pixels");
     let stdout = String::from_utf8_lossy(&run.stdout);
     let drawn: usize = stdout
         .split('(')

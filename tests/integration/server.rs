@@ -569,7 +569,9 @@ async fn sigint_ends_open_streams_and_exits_within_the_drain_timeout() {
 
 async fn drains_on(signal: &str) {
     let dir = bundle_dir();
-    let mut server = Server::start(dir.path(), &["--drain-timeout", "5s"]);
+    // A drain timeout far beyond the wait below: an open stream that held the server would keep
+    // it running past the wait.
+    let mut server = Server::start(dir.path(), &["--drain-timeout", "600s"]);
     server.wait_serving().await;
     let mut client = server.client().await;
     let session = open(&mut client, options(None, None, 0)).await;
@@ -608,7 +610,6 @@ async fn drains_on(signal: &str) {
         serving
     );
 
-    let started = std::time::Instant::now();
     server.signal(signal);
     // Health turns NOT_SERVING, then its watch ends too.
     let not_serving = tonic_health::pb::health_check_response::ServingStatus::NotServing as i32;
@@ -630,16 +631,11 @@ async fn drains_on(signal: &str) {
         .unwrap()
         .expect_err("with a status");
     assert_eq!(status.code(), Code::Unavailable);
+    // Ended by the streams' end, not by the drain timeout: no open stream held the server.
     let exit = server
-        .wait_exit(Duration::from_secs(8))
-        .expect("exits within the drain timeout");
+        .wait_exit(Duration::from_secs(60))
+        .expect("exits once its streams have ended, long before the drain timeout");
     assert!(exit.success(), "{exit:?}: {}", server.stderr());
-    // Well within the 5 s drain timeout: no open stream held the server.
-    assert!(
-        started.elapsed() < Duration::from_secs(3),
-        "{:?}",
-        started.elapsed()
-    );
     drop(tx);
 }
 
