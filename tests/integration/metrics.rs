@@ -5,6 +5,7 @@
 use crate::common;
 
 use std::io::{Read, Write};
+use std::time::Duration;
 
 use common::{OBS, Server, bundle_dir};
 use prac::proto;
@@ -179,4 +180,35 @@ async fn a_batch_window_sends_every_step_to_the_batch_workers() {
         3.0
     );
     assert!(!text.contains("prac_replanned_total{by=\"handler\"}"));
+}
+
+/// Silent clients beyond the metrics endpoint's cap of 64 connections: each new one is admitted
+/// by shedding the oldest that has sent no request, and a scraper still gets its answer.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_metrics_endpoint_sheds_silent_clients_beyond_64_and_still_answers_a_scraper() {
+    let bundles = bundle_dir();
+    let mut command = std::process::Command::new(env!("CARGO_BIN_EXE_prac"));
+    command
+        .env("RUST_LOG", "prac=debug")
+        .args(["serve", "--listen", "127.0.0.1:0", "--bundles"])
+        .arg(bundles.path())
+        .args(["--metrics-listen", "127.0.0.1:0"]);
+    let server = Server::spawn(command);
+    let addr = metrics_address(&server);
+    server.wait_serving().await;
+    let silent: Vec<std::net::TcpStream> = (0..74)
+        .map(|_| std::net::TcpStream::connect(&addr).unwrap())
+        .collect();
+    // Answered although 74 silent connections came first.
+    let text = scrape(&addr);
+    assert!(text.contains("prac_serving 1"), "{text}");
+    // Ten silent ones beyond the cap, and one more for the scraper, were shed to admit the
+    // newer ones (a silent connection's own deadline is logged otherwise).
+    let shed = |log: &str| log.matches("metrics connection shed at the cap").count();
+    let deadline = std::time::Instant::now() + Duration::from_secs(30);
+    while shed(&server.stderr()) < 11 && std::time::Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert_eq!(shed(&server.stderr()), 11, "{}", server.stderr());
+    drop(silent);
 }
