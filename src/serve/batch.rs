@@ -2,14 +2,21 @@
 //! what is queued (waiting up to the batch window for more) and replan each policy's sessions
 //! together with [`replan_batch`], so that every network evaluation is a matrix product over the
 //! batch. A session always goes to the same worker, so its steps are replanned in the order they
-//! came. A full queue is answered at once with RESOURCE_EXHAUSTED. A step that finds no other
-//! step waiting is replanned in its request handler instead ([`Batcher::claim_alone`]): alone it has
-//! nothing to batch with, and the hand-off to a worker thread would cost more than it saves. A
-//! batch window (steps wait for company) turns this off.
+//! came. A full queue is answered at once with RESOURCE_EXHAUSTED. A step of the only session
+//! that stepped lately, finding no other step waiting, is replanned in its request handler
+//! instead ([`Batcher::claim_alone`]): alone it has nothing to batch with, and the hand-off to a
+//! worker thread would cost more than it saves. A batch window (steps wait for company) turns
+//! this off.
+//!
+//! Without a window, a worker expects company from the sessions that stepped lately
+//! ([`Activity`]): with several of them (each sends its next step once answered, closed loop, or
+//! on its control clock), it waits for their steps, up to [`COMPANY_WAIT`], before replanning, so
+//! that a core whose steps arrive one by one still replans them together instead of one at a
+//! time. Steps too cheap to be worth a hand-off ([`CHEAP_STEP`]) stay in their handlers.
 
 use std::collections::HashMap;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
 use crossbeam_channel::{Receiver, Sender, TrySendError};
@@ -21,6 +28,83 @@ use super::session::{Session, SessionSlot, StepInput, Taken, apply_steps};
 use super::workspace::{Workspace, Workspaces};
 use crate::policy::Policy;
 use crate::proto;
+
+/// How long a worker waits for the steps of the sessions that stepped lately, when no batch window
+/// is set: a closed-loop client answered in one batch sends its next steps within about this.
+const COMPANY_WAIT: Duration = Duration::from_micros(1_000);
+
+/// A step whose replan in its handler took less than this (a moving average) costs less than
+/// the hand-off to a worker thread: such steps are replanned in their handlers whatever the
+/// company (one-step serving, short plans).
+const CHEAP_STEP: Duration = Duration::from_micros(25);
+
+/// How recently a session must have stepped to count as active ([`Activity`]).
+const ACTIVITY_EPOCH_MS: u64 = 20;
+
+/// Bits of the active-session sketch per worker.
+const ACTIVITY_BITS: usize = 256;
+
+/// Sessions of one worker that stepped in the current or last epoch ([`ACTIVITY_EPOCH_MS`]),
+/// estimated lock-free: each step sets its session's bit in a 256-bit sketch, and the count is
+/// the bits set. Sessions whose bits collide count once, so it errs low (64 sessions at random
+/// bits set about 57), which only ends a worker's wait for company sooner.
+struct Activity {
+    start: Instant,
+    epoch: AtomicU64,
+    current: [AtomicU64; ACTIVITY_BITS / 64],
+    previous: [AtomicU64; ACTIVITY_BITS / 64],
+}
+
+impl Activity {
+    fn new() -> Activity {
+        Activity {
+            start: Instant::now(),
+            epoch: AtomicU64::new(0),
+            current: Default::default(),
+            previous: Default::default(),
+        }
+    }
+
+    /// Starts a new epoch when the current one is over (the last one's bits are kept a while).
+    fn rotate(&self) {
+        let now = self.start.elapsed().as_millis() as u64 / ACTIVITY_EPOCH_MS;
+        let seen = self.epoch.load(Ordering::Acquire);
+        if now != seen
+            && self
+                .epoch
+                .compare_exchange(seen, now, Ordering::AcqRel, Ordering::Acquire)
+                .is_ok()
+        {
+            // Two epochs or more apart: the last one saw nothing either.
+            let stale = now > seen + 1;
+            for (current, previous) in self.current.iter().zip(&self.previous) {
+                let bits = current.swap(0, Ordering::AcqRel);
+                previous.store(if stale { 0 } else { bits }, Ordering::Release);
+            }
+        }
+    }
+
+    fn mark(&self, session: usize) {
+        self.rotate();
+        // Fibonacci hashing: the top 8 bits of the product spread the slots' addresses over
+        // the 256 bits.
+        let hashed = (session as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        let bit = (hashed >> (64 - ACTIVITY_BITS.trailing_zeros())) as usize;
+        self.current[bit / 64].fetch_or(1 << (bit % 64), Ordering::AcqRel);
+    }
+
+    /// Sessions that stepped in this epoch or the last.
+    fn sessions(&self) -> usize {
+        self.rotate();
+        let set: u32 = self
+            .current
+            .iter()
+            .zip(&self.previous)
+            .map(|(c, p)| (c.load(Ordering::Acquire) | p.load(Ordering::Acquire)).count_ones())
+            .sum();
+        set as usize
+    }
+}
 
 /// Settings of the batch workers.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -56,6 +140,10 @@ pub(super) struct Batcher {
     waiting: Arc<AtomicUsize>,
     /// A batch window asks steps to wait for company: then no step is replanned alone.
     inline_when_alone: bool,
+    /// Per worker, its sessions that stepped lately.
+    activity: Vec<Arc<Activity>>,
+    /// Moving average of a step's replan in its handler, in nanoseconds.
+    alone_cost_ns: Arc<AtomicU64>,
 }
 
 /// Counts one waiting caller while it lives (a dropped, cancelled call included).
@@ -81,12 +169,15 @@ impl Batcher {
         let workers = config.workers.max(1);
         let per_worker = config.queue.div_ceil(workers).max(1);
         let mut queues = Vec::with_capacity(workers);
+        let mut activity = Vec::with_capacity(workers);
         for i in 0..workers {
             let (queue, receiver) = crossbeam_channel::bounded(per_worker);
             queues.push(queue);
+            let sessions = Arc::new(Activity::new());
+            activity.push(sessions.clone());
             std::thread::Builder::new()
                 .name(format!("prac-batch-{i}"))
-                .spawn(move || Worker::new(config).run(&receiver))
+                .spawn(move || Worker::new(config, sessions).run(&receiver))
                 .expect("spawning a batch worker thread");
         }
         Batcher {
@@ -94,15 +185,36 @@ impl Batcher {
             capacity: per_worker,
             waiting: Arc::default(),
             inline_when_alone: config.window.is_zero(),
+            activity,
+            alone_cost_ns: Arc::default(),
         }
+    }
+
+    /// Records how long a step replanned in its handler took (see [`CHEAP_STEP`]).
+    pub(super) fn note_alone_cost(&self, took: Duration) {
+        let took = took.as_nanos().min(u128::from(u64::MAX)) as u64;
+        let average = self.alone_cost_ns.load(Ordering::Relaxed);
+        // An average over about the last 16 steps.
+        let next = average - average / 16 + took / 16;
+        self.alone_cost_ns.store(next, Ordering::Relaxed);
+    }
+
+    /// The worker of a session: one per session keeps its steps in order.
+    fn worker_of(&self, slot: &Arc<SessionSlot>) -> usize {
+        (Arc::as_ptr(slot) as usize / std::mem::align_of::<SessionSlot>()) % self.queues.len()
     }
 
     /// When no step is queued or being replanned (and no batch window is set), a step has
     /// nothing to be batched with: this claims the right to replan it in its handler, until the
     /// guard drops. Steps that come meanwhile are batched. A session's steps keep their order,
     /// since its next step cannot claim while an earlier one waits.
-    pub(super) fn claim_alone(&self) -> Option<Waiting<'_>> {
-        if !self.inline_when_alone {
+    pub(super) fn claim_alone(&self, slot: &Arc<SessionSlot>) -> Option<Waiting<'_>> {
+        let activity = &self.activity[self.worker_of(slot)];
+        activity.mark(Arc::as_ptr(slot) as usize);
+        // Other sessions of its worker stepped lately: their steps will keep it company, unless
+        // a step is too cheap to be worth the hand-off.
+        let cheap = self.alone_cost_ns.load(Ordering::Relaxed) < CHEAP_STEP.as_nanos() as u64;
+        if !self.inline_when_alone || (activity.sessions() > 1 && !cheap) {
             return None;
         }
         self.waiting
@@ -123,9 +235,7 @@ impl Batcher {
     ) -> Answer {
         let _waiting = Waiting::enter(&self.waiting);
         let (reply, mut answer) = oneshot::channel();
-        // One worker per session keeps its steps in order.
-        let worker =
-            (Arc::as_ptr(&slot) as usize / std::mem::align_of::<SessionSlot>()) % self.queues.len();
+        let worker = self.worker_of(&slot);
         let work = Work {
             slot,
             request,
@@ -170,13 +280,15 @@ impl Batcher {
 struct Worker {
     config: BatchConfig,
     workspaces: Workspaces,
+    activity: Arc<Activity>,
 }
 
 impl Worker {
-    fn new(config: BatchConfig) -> Worker {
+    fn new(config: BatchConfig, activity: Arc<Activity>) -> Worker {
         Worker {
             config,
             workspaces: Workspaces::new(config.max_batch, 0),
+            activity,
         }
     }
 
@@ -185,11 +297,23 @@ impl Worker {
         let mut deferred = Vec::new();
         while let Ok(first) = receiver.recv() {
             batch.push(first);
-            let deadline = Instant::now() + self.config.window;
+            // Without a window, the steps to expect: one from each session that stepped lately,
+            // for at most COMPANY_WAIT. A window is waited out whatever the company.
+            let window = self.config.window;
+            let company = match window.is_zero() {
+                true => self.activity.sessions().clamp(1, self.config.max_batch),
+                false => self.config.max_batch,
+            };
+            let deadline = Instant::now()
+                + if window.is_zero() {
+                    COMPANY_WAIT
+                } else {
+                    window
+                };
             while batch.len() < self.config.max_batch {
                 let next = match receiver.try_recv() {
                     Ok(work) => Some(work),
-                    Err(_) if self.config.window.is_zero() => None,
+                    Err(_) if batch.len() >= company => None,
                     Err(_) => receiver.recv_deadline(deadline).ok(),
                 };
                 match next {
@@ -288,5 +412,29 @@ impl Worker {
                 }
             },
         );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_activity_sketch_counts_the_sessions_that_stepped_lately() {
+        let activity = Activity::new();
+        assert_eq!(activity.sessions(), 0);
+        // Slots are heap addresses, aligned: stand-ins 64 bytes apart.
+        let slot = |k: usize| 0x7f00_0000_0000 + 64 * k;
+        activity.mark(slot(1));
+        activity.mark(slot(1));
+        assert_eq!(activity.sessions(), 1);
+        for k in 0..64 {
+            activity.mark(slot(k));
+        }
+        let estimate = activity.sessions();
+        assert!((52..=64).contains(&estimate), "{estimate} for 64 sessions");
+        // Two epochs without a step: nobody is active.
+        std::thread::sleep(Duration::from_millis(3 * ACTIVITY_EPOCH_MS));
+        assert_eq!(activity.sessions(), 0);
     }
 }

@@ -243,7 +243,7 @@ impl ServerState {
             return Err(deadline::exceeded());
         }
         let _alone = match &self.batcher {
-            Some(batcher) => match batcher.claim_alone() {
+            Some(batcher) => match batcher.claim_alone(slot) {
                 Some(alone) => Some(alone),
                 None => {
                     let answer = batcher
@@ -270,7 +270,11 @@ impl ServerState {
                 new_episode: request.new_episode,
                 arrival,
             };
+            let started = std::time::Instant::now();
             let report = session.apply_step(evaluator, scratch, input)?;
+            if let Some(batcher) = &self.batcher {
+                batcher.note_alone_cost(started.elapsed());
+            }
             self.metrics.replanned(ReplannedBy::Handler);
             Ok((session.response(&report), report.served))
         })
