@@ -33,10 +33,11 @@ use crate::proto;
 /// is set: a closed-loop client answered in one batch sends its next steps within about this.
 const COMPANY_WAIT: Duration = Duration::from_micros(1_000);
 
-/// A step whose replan in its handler took less than this (a moving average) costs less than
-/// the hand-off to a worker thread: such steps are replanned in their handlers whatever the
-/// company (one-step serving, short plans).
-const CHEAP_STEP: Duration = Duration::from_micros(25);
+/// A step whose replan took less than this (a moving average over the steps replanned in handlers
+/// and, per step, in batches) costs less than the hand-off to a worker thread and the wait for
+/// company: such steps are replanned in their handlers whatever the company (one-step serving,
+/// short plans).
+const CHEAP_STEP: Duration = Duration::from_micros(50);
 
 /// How recently a session must have stepped to count as active ([`Activity`]).
 const ACTIVITY_EPOCH_MS: u64 = 20;
@@ -142,8 +143,25 @@ pub(super) struct Batcher {
     inline_when_alone: bool,
     /// Per worker, its sessions that stepped lately.
     activity: Vec<Arc<Activity>>,
-    /// Moving average of a step's replan in its handler, in nanoseconds.
-    alone_cost_ns: Arc<AtomicU64>,
+    /// Moving average of a step's replan, in nanoseconds ([`CHEAP_STEP`]).
+    step_cost: Arc<StepCost>,
+}
+
+/// A moving average of what a step's replan costs, over about the last 16 steps or batches.
+#[derive(Default)]
+pub(super) struct StepCost(AtomicU64);
+
+impl StepCost {
+    fn note(&self, per_step: Duration) {
+        let took = per_step.as_nanos().min(u128::from(u64::MAX)) as u64;
+        let average = self.0.load(Ordering::Relaxed);
+        self.0
+            .store(average - average / 16 + took / 16, Ordering::Relaxed);
+    }
+
+    fn cheap(&self) -> bool {
+        self.0.load(Ordering::Relaxed) < CHEAP_STEP.as_nanos() as u64
+    }
 }
 
 /// Counts one waiting caller while it lives (a dropped, cancelled call included).
@@ -170,14 +188,16 @@ impl Batcher {
         let per_worker = config.queue.div_ceil(workers).max(1);
         let mut queues = Vec::with_capacity(workers);
         let mut activity = Vec::with_capacity(workers);
+        let step_cost = Arc::new(StepCost::default());
         for i in 0..workers {
             let (queue, receiver) = crossbeam_channel::bounded(per_worker);
             queues.push(queue);
             let sessions = Arc::new(Activity::new());
             activity.push(sessions.clone());
+            let cost = step_cost.clone();
             std::thread::Builder::new()
                 .name(format!("prac-batch-{i}"))
-                .spawn(move || Worker::new(config, sessions).run(&receiver))
+                .spawn(move || Worker::new(config, sessions, cost).run(&receiver))
                 .expect("spawning a batch worker thread");
         }
         Batcher {
@@ -186,17 +206,13 @@ impl Batcher {
             waiting: Arc::default(),
             inline_when_alone: config.window.is_zero(),
             activity,
-            alone_cost_ns: Arc::default(),
+            step_cost,
         }
     }
 
     /// Records how long a step replanned in its handler took (see [`CHEAP_STEP`]).
     pub(super) fn note_alone_cost(&self, took: Duration) {
-        let took = took.as_nanos().min(u128::from(u64::MAX)) as u64;
-        let average = self.alone_cost_ns.load(Ordering::Relaxed);
-        // An average over about the last 16 steps.
-        let next = average - average / 16 + took / 16;
-        self.alone_cost_ns.store(next, Ordering::Relaxed);
+        self.step_cost.note(took);
     }
 
     /// The worker of a session: one per session keeps its steps in order.
@@ -213,7 +229,7 @@ impl Batcher {
         activity.mark(Arc::as_ptr(slot) as usize);
         // Other sessions of its worker stepped lately: their steps will keep it company, unless
         // a step is too cheap to be worth the hand-off.
-        let cheap = self.alone_cost_ns.load(Ordering::Relaxed) < CHEAP_STEP.as_nanos() as u64;
+        let cheap = self.step_cost.cheap();
         if !self.inline_when_alone || (activity.sessions() > 1 && !cheap) {
             return None;
         }
@@ -281,14 +297,16 @@ struct Worker {
     config: BatchConfig,
     workspaces: Workspaces,
     activity: Arc<Activity>,
+    step_cost: Arc<StepCost>,
 }
 
 impl Worker {
-    fn new(config: BatchConfig, activity: Arc<Activity>) -> Worker {
+    fn new(config: BatchConfig, activity: Arc<Activity>, step_cost: Arc<StepCost>) -> Worker {
         Worker {
             config,
             workspaces: Workspaces::new(config.max_batch, 0),
             activity,
+            step_cost,
         }
     }
 
@@ -368,7 +386,9 @@ impl Worker {
                     mine.push(work);
                 }
             }
+            let (started, steps) = (Instant::now(), mine.len() as u32);
             self.replan_group(mine);
+            self.step_cost.note(started.elapsed() / steps.max(1));
         }
     }
 
