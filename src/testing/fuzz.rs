@@ -328,7 +328,10 @@ mod tests {
         }
         for k in 0..8 {
             let seed = std::fs::read(root.join(format!("requests/step-{k}"))).unwrap();
-            assert!(requests(&seed), "fuzz/corpus/requests/step-{k} reaches no step");
+            assert!(
+                requests(&seed),
+                "fuzz/corpus/requests/step-{k} reaches no step"
+            );
         }
         let bytes = std::fs::read(&bundle_seed).unwrap();
         bundle::from_bytes(&bytes, &bundle_seed).unwrap();
@@ -342,13 +345,19 @@ mod tests {
         let seeds = vec![valid_bundle(), Vec::new(), b"{}".to_vec()];
         let outcomes = mutate_and_run(&seeds, 3000, 1, bundle_bytes);
         // Both ways reached: mutations that still load (and plan), and ones refused.
-        assert!(outcomes.accepted > 0 && outcomes.refused > 0, "{outcomes:?}");
+        assert!(
+            outcomes.accepted > 0 && outcomes.refused > 0,
+            "{outcomes:?}"
+        );
     }
 
     #[test]
     fn the_bundle_loader_survives_mutated_manifests() {
         let outcomes = mutate_and_run(&[manifest_seed()], 3000, 2, bundle_manifest);
-        assert!(outcomes.accepted > 0 && outcomes.refused > 0, "{outcomes:?}");
+        assert!(
+            outcomes.accepted > 0 && outcomes.refused > 0,
+            "{outcomes:?}"
+        );
     }
 
     #[test]
@@ -358,7 +367,10 @@ mod tests {
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/corpus/bundle_manifest");
         for (k, manifest) in attacks.iter().enumerate() {
             let committed = std::fs::read(root.join(format!("attack-{k}.json"))).unwrap();
-            assert_eq!(&committed, manifest, "fuzz/corpus/bundle_manifest/attack-{k}.json");
+            assert_eq!(
+                &committed, manifest,
+                "fuzz/corpus/bundle_manifest/attack-{k}.json"
+            );
         }
         for manifest in &attacks {
             let text = String::from_utf8_lossy(manifest);
@@ -376,6 +388,9 @@ mod tests {
     fn request_handling_survives_arbitrary_options_plans_and_observations() {
         let seeds = request_seeds();
         let outcomes = mutate_and_run(&seeds, 3000, 3, requests);
-        assert!(outcomes.accepted > 0 && outcomes.refused > 0, "{outcomes:?}");
+        assert!(
+            outcomes.accepted > 0 && outcomes.refused > 0,
+            "{outcomes:?}"
+        );
     }
 }
