@@ -318,9 +318,10 @@ impl Worker {
             // Without a window, the steps to expect: one from each session that stepped lately,
             // for at most COMPANY_WAIT. A window is waited out whatever the company.
             let window = self.config.window;
-            let company = match window.is_zero() {
-                true => self.activity.sessions().clamp(1, self.config.max_batch),
-                false => self.config.max_batch,
+            let company = if window.is_zero() {
+                self.activity.sessions().clamp(1, self.config.max_batch)
+            } else {
+                self.config.max_batch
             };
             let deadline = Instant::now()
                 + if window.is_zero() {
