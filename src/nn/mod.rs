@@ -1,8 +1,9 @@
 //! f32 multilayer perceptrons on nalgebra matrices, evaluated over a batch of states stored as rows
 //! (one state per row). One kernel serves a single state (a batch of one) and cross-session
-//! batches: weights are packed into panels of 16 outputs, and each panel is read once per tile of
-//! up to 6 (AVX2) or 12 (AVX-512) states, whose accumulators stay in registers. Buffers live in caller-owned
-//! scratch and only grow, so a forward allocates nothing once a batch size has been seen.
+//! batches: weights are packed into panels of 16 outputs, and a tile of one panel by up to 6
+//! states (AVX2) or two panels by up to 12 states (AVX-512) keeps its accumulators in registers.
+//! Buffers live in caller-owned scratch and only grow, so a forward allocates nothing once a batch
+//! size has been seen.
 
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
@@ -140,7 +141,7 @@ impl Dense {
     unsafe fn forward_avx2(&self, inputs: &[f32], outputs: &mut [f32]) {
         let (out, inp) = (self.output_dim(), self.input_dim());
         let n = inputs.len() / inp;
-        for tile in self.tiles() {
+        for tile in self.tiles(1) {
             for row in (0..n).step_by(6) {
                 let (x, y) = (&inputs[row * inp..], &mut outputs[row * out..]);
                 // SAFETY: the CPU has AVX2 and FMA (this function's features).
@@ -158,55 +159,51 @@ impl Dense {
         }
     }
 
-    /// The AVX-512 kernel: as the AVX2 one with one register per row and tiles of up to 12 rows.
+    /// The AVX-512 kernel: tiles of two panels (32 outputs) by up to 12 rows, 24 accumulators in
+    /// registers, so each broadcast input feeds two fused multiply-adds and each weight load 12.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx512f")]
     unsafe fn forward_avx512(&self, inputs: &[f32], outputs: &mut [f32]) {
-        let (out, inp) = (self.output_dim(), self.input_dim());
+        let inp = self.input_dim();
         let n = inputs.len() / inp;
-        for tile in self.tiles() {
-            for row in (0..n).step_by(12) {
-                let (x, y) = (&inputs[row * inp..], &mut outputs[row * out..]);
-                // SAFETY: the CPU has AVX-512F (this function's feature).
-                unsafe {
-                    match n - row {
-                        12.. => tile.avx512::<12>(x, y),
-                        11 => tile.avx512::<11>(x, y),
-                        10 => tile.avx512::<10>(x, y),
-                        9 => tile.avx512::<9>(x, y),
-                        8 => tile.avx512::<8>(x, y),
-                        7 => tile.avx512::<7>(x, y),
-                        6 => tile.avx512::<6>(x, y),
-                        5 => tile.avx512::<5>(x, y),
-                        4 => tile.avx512::<4>(x, y),
-                        3 => tile.avx512::<3>(x, y),
-                        2 => tile.avx512::<2>(x, y),
-                        _ => tile.avx512::<1>(x, y),
-                    }
+        for tile in self.tiles(2) {
+            // SAFETY: the CPU has AVX-512F (this function's feature).
+            unsafe {
+                match tile.panels {
+                    2 => tile.avx512_rows::<2>(n, inputs, outputs),
+                    _ => tile.avx512_rows::<1>(n, inputs, outputs),
                 }
             }
         }
     }
 
-    /// The panels of packed weights, each with where its outputs go.
+    /// The packed weights in groups of up to `group` consecutive panels, each with where its
+    /// outputs go.
     #[cfg(target_arch = "x86_64")]
-    fn tiles(&self) -> impl Iterator<Item = Tile<'_>> {
+    fn tiles(&self, group: usize) -> impl Iterator<Item = Tile<'_>> {
         let (out, inp) = (self.output_dim(), self.input_dim());
-        (0..out.div_ceil(PANEL)).map(move |p| Tile {
-            panel: &self.packed[p * inp * PANEL..(p + 1) * inp * PANEL],
-            bias: &self.padded_bias[p * PANEL..(p + 1) * PANEL],
-            first: p * PANEL,
-            inp,
-            out,
+        let panels = out.div_ceil(PANEL);
+        (0..panels).step_by(group).map(move |p| {
+            let end = (p + group).min(panels);
+            Tile {
+                panel: &self.packed[p * inp * PANEL..end * inp * PANEL],
+                bias: &self.padded_bias[p * PANEL..end * PANEL],
+                panels: end - p,
+                first: p * PANEL,
+                inp,
+                out,
+            }
         })
     }
 }
 
-/// One panel of packed weights and where its outputs go.
+/// Consecutive panels of packed weights and where their outputs go.
 #[cfg(target_arch = "x86_64")]
 struct Tile<'a> {
     panel: &'a [f32],
     bias: &'a [f32],
+    /// Panels in this tile.
+    panels: usize,
     /// The panel's first output.
     first: usize,
     inp: usize,
@@ -215,15 +212,16 @@ struct Tile<'a> {
 
 #[cfg(target_arch = "x86_64")]
 impl Tile<'_> {
-    /// Outputs of this panel that exist (the last panel may be partial).
+    /// Outputs of this tile's first panel that exist (the last panel may be partial).
     fn width(&self) -> usize {
         PANEL.min(self.out - self.first)
     }
 
-    /// Writes one row's 16 accumulated outputs, only those that exist.
-    fn store(&self, row: &mut [f32], values: &[f32; PANEL]) {
-        let width = self.width();
-        row[self.first..self.first + width].copy_from_slice(&values[..width]);
+    /// Writes one row's 16 accumulated outputs of panel `q`, only those that exist.
+    fn store(&self, row: &mut [f32], q: usize, values: &[f32; PANEL]) {
+        let first = self.first + q * PANEL;
+        let width = PANEL.min(self.out - first);
+        row[first..first + width].copy_from_slice(&values[..width]);
     }
 
     /// R rows: `x` and `y` start at the first of them.
@@ -251,33 +249,68 @@ impl Tile<'_> {
             for r in 0..R {
                 _mm256_storeu_ps(values.as_mut_ptr(), lo[r]);
                 _mm256_storeu_ps(values.as_mut_ptr().add(8), hi[r]);
-                self.store(&mut y[r * out..], &values);
+                self.store(&mut y[r * out..], 0, &values);
             }
         }
     }
 
-    /// R rows: `x` and `y` start at the first of them.
+    /// Every one of `n` rows through this tile's P panels, 12 rows at a time.
     #[target_feature(enable = "avx512f")]
-    unsafe fn avx512<const R: usize>(&self, x: &[f32], y: &mut [f32]) {
+    unsafe fn avx512_rows<const P: usize>(&self, n: usize, inputs: &[f32], outputs: &mut [f32]) {
+        let (inp, out) = (self.inp, self.out);
+        for row in (0..n).step_by(12) {
+            let (x, y) = (&inputs[row * inp..], &mut outputs[row * out..]);
+            // SAFETY: the CPU has AVX-512F (this function's feature).
+            unsafe {
+                match n - row {
+                    12.. => self.avx512::<12, P>(x, y),
+                    11 => self.avx512::<11, P>(x, y),
+                    10 => self.avx512::<10, P>(x, y),
+                    9 => self.avx512::<9, P>(x, y),
+                    8 => self.avx512::<8, P>(x, y),
+                    7 => self.avx512::<7, P>(x, y),
+                    6 => self.avx512::<6, P>(x, y),
+                    5 => self.avx512::<5, P>(x, y),
+                    4 => self.avx512::<4, P>(x, y),
+                    3 => self.avx512::<3, P>(x, y),
+                    2 => self.avx512::<2, P>(x, y),
+                    _ => self.avx512::<1, P>(x, y),
+                }
+            }
+        }
+    }
+
+    /// R rows through P panels: `x` and `y` start at the first of the rows.
+    #[target_feature(enable = "avx512f")]
+    unsafe fn avx512<const R: usize, const P: usize>(&self, x: &[f32], y: &mut [f32]) {
         use std::arch::x86_64::*;
         let (inp, out) = (self.inp, self.out);
-        assert!(self.panel.len() >= inp * PANEL && self.bias.len() >= PANEL);
-        assert!(x.len() >= R * inp && y.len() >= (R - 1) * out + self.first + self.width());
+        assert!(P == self.panels);
+        assert!(self.panel.len() >= P * inp * PANEL && self.bias.len() >= P * PANEL);
+        let last = self.first + (P - 1) * PANEL;
+        assert!(x.len() >= R * inp && y.len() >= (R - 1) * out + last + PANEL.min(out - last));
         let (w, xs) = (self.panel.as_ptr(), x.as_ptr());
-        // SAFETY: j < inp and r < R keep every read inside the lengths checked above.
+        // SAFETY: j < inp, q < P and r < R keep every read inside the lengths checked above.
         unsafe {
-            let mut acc = [_mm512_loadu_ps(self.bias.as_ptr()); R];
+            let bias: [__m512; P] =
+                std::array::from_fn(|q| _mm512_loadu_ps(self.bias.as_ptr().add(q * PANEL)));
+            let mut acc = [bias; R];
             for j in 0..inp {
-                let wv = _mm512_loadu_ps(w.add(j * PANEL));
+                let wv: [__m512; P] =
+                    std::array::from_fn(|q| _mm512_loadu_ps(w.add((q * inp + j) * PANEL)));
                 for (r, acc) in acc.iter_mut().enumerate() {
                     let xv = _mm512_set1_ps(*xs.add(r * inp + j));
-                    *acc = _mm512_fmadd_ps(wv, xv, *acc);
+                    for q in 0..P {
+                        acc[q] = _mm512_fmadd_ps(wv[q], xv, acc[q]);
+                    }
                 }
             }
             let mut values = [0.0f32; PANEL];
             for (r, acc) in acc.iter().enumerate() {
-                _mm512_storeu_ps(values.as_mut_ptr(), *acc);
-                self.store(&mut y[r * out..], &values);
+                for (q, acc) in acc.iter().enumerate() {
+                    _mm512_storeu_ps(values.as_mut_ptr(), *acc);
+                    self.store(&mut y[r * out..], q, &values);
+                }
             }
         }
     }
@@ -680,8 +713,10 @@ mod tests {
 
     #[test]
     fn every_kernel_gives_the_scalar_bits() {
-        // Partial panels (37 = 16 + 16 + 5 outputs), every tile height, one input.
-        for (out, inp) in [(37, 23), (16, 1), (5, 256), (256, 18)] {
+        // Partial panels (37 = 16 + 16 + 5 outputs: a two-panel tile, then a lone partial panel;
+        // 53 = 16 + 16 + 16 + 5: a partial panel inside a two-panel tile), every tile height,
+        // one input.
+        for (out, inp) in [(37, 23), (53, 7), (16, 1), (5, 256), (256, 18)] {
             let d = layer(out, inp, 5.0);
             for n in [1, 2, 5, 6, 7, 12, 13, 25] {
                 let x: Vec<f32> = (0..n * inp).map(|i| (i as f32 * 0.29).sin()).collect();
