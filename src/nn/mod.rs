@@ -217,11 +217,10 @@ impl Tile<'_> {
         PANEL.min(self.out - self.first)
     }
 
-    /// Writes one row's 16 accumulated outputs of panel `q`, only those that exist.
-    fn store(&self, row: &mut [f32], q: usize, values: &[f32; PANEL]) {
-        let first = self.first + q * PANEL;
-        let width = PANEL.min(self.out - first);
-        row[first..first + width].copy_from_slice(&values[..width]);
+    /// Writes one row's accumulated outputs of a partial panel, only those that exist.
+    fn store(&self, row: &mut [f32], values: &[f32; PANEL]) {
+        let width = self.width();
+        row[self.first..self.first + width].copy_from_slice(&values[..width]);
     }
 
     /// R rows: `x` and `y` start at the first of them.
@@ -247,9 +246,15 @@ impl Tile<'_> {
             }
             let mut values = [0.0f32; PANEL];
             for r in 0..R {
-                _mm256_storeu_ps(values.as_mut_ptr(), lo[r]);
-                _mm256_storeu_ps(values.as_mut_ptr().add(8), hi[r]);
-                self.store(&mut y[r * out..], 0, &values);
+                if self.width() == PANEL {
+                    let row = y.as_mut_ptr().add(r * out + self.first);
+                    _mm256_storeu_ps(row, lo[r]);
+                    _mm256_storeu_ps(row.add(8), hi[r]);
+                } else {
+                    _mm256_storeu_ps(values.as_mut_ptr(), lo[r]);
+                    _mm256_storeu_ps(values.as_mut_ptr().add(8), hi[r]);
+                    self.store(&mut y[r * out..], &values);
+                }
             }
         }
     }
@@ -305,11 +310,13 @@ impl Tile<'_> {
                     }
                 }
             }
-            let mut values = [0.0f32; PANEL];
+            // Masked stores write only the outputs that exist, with no copy through memory.
             for (r, acc) in acc.iter().enumerate() {
                 for (q, acc) in acc.iter().enumerate() {
-                    _mm512_storeu_ps(values.as_mut_ptr(), *acc);
-                    self.store(&mut y[r * out..], q, &values);
+                    let first = self.first + q * PANEL;
+                    let width = PANEL.min(out - first);
+                    let mask = (u32::MAX >> (32 - width)) as __mmask16;
+                    _mm512_mask_storeu_ps(y.as_mut_ptr().add(r * out + first), mask, *acc);
                 }
             }
         }
@@ -511,9 +518,17 @@ impl Mlp {
         let last = self.layers.len();
         for (i, dense) in self.layers.iter().enumerate() {
             let (before, rest) = scratch.outputs.split_at_mut(i);
-            let out = &mut rest[0];
-            resize(out, n * dense.output_dim());
-            let x = if i == 0 { inputs } else { &before[i - 1][..] };
+            // Buffers only grow: a smaller batch uses their start, so batch sizes that come and
+            // go cost no refilling.
+            let len = n * dense.output_dim();
+            if rest[0].len() < len {
+                rest[0].resize(len, 0.0);
+            }
+            let out = &mut rest[0][..len];
+            let x = match i {
+                0 => inputs,
+                _ => &before[i - 1][..n * dense.input_dim()],
+            };
             dense.forward_rows(x, out);
             if let Some(norm) = self.norms.get(i) {
                 norm.apply_rows(out);
@@ -522,9 +537,9 @@ impl Mlp {
                 self.activation.apply(out);
             }
         }
-        match scratch.outputs.last() {
-            Some(out) => out,
-            None => inputs,
+        match (scratch.outputs.last(), self.layers.last()) {
+            (Some(out), Some(dense)) => &out[..n * dense.output_dim()],
+            _ => inputs,
         }
     }
 }
