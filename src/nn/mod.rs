@@ -20,10 +20,16 @@ impl Activation {
     #[inline]
     fn apply(self, values: &mut [f32]) {
         match self {
-            Activation::Relu => values.iter_mut().for_each(|v| *v = v.max(0.0)),
+            Activation::Relu => values.iter_mut().for_each(|v| *v = relu(*v)),
             Activation::Tanh => values.iter_mut().for_each(|v| *v = v.tanh()),
         }
     }
+}
+
+/// max(v, 0), with 0 for NaN and for -0: the kernels' `max_ps(v, 0)` bit for bit.
+#[inline]
+fn relu(v: f32) -> f32 {
+    if v > 0.0 { v } else { 0.0 }
 }
 
 /// One affine layer, PyTorch layout: `weight` is [out, in]. The kernels read a packed copy made
@@ -97,6 +103,15 @@ impl Dense {
     /// multiply-adds (from the bias, over the inputs in order), so they agree bit for bit and a
     /// row's result does not depend on the other rows.
     pub(crate) fn forward_rows(&self, inputs: &[f32], outputs: &mut [f32]) {
+        self.forward(inputs, outputs, false);
+    }
+
+    /// `forward_rows` then [`relu`] on every output, applied in registers before the store.
+    pub(crate) fn forward_rows_relu(&self, inputs: &[f32], outputs: &mut [f32]) {
+        self.forward(inputs, outputs, true);
+    }
+
+    fn forward(&self, inputs: &[f32], outputs: &mut [f32], relu: bool) {
         let (out, inp) = (self.output_dim(), self.input_dim());
         assert!(
             inp > 0
@@ -106,21 +121,34 @@ impl Dense {
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx512f") {
             // SAFETY: the CPU has the features the function is compiled for.
-            unsafe { self.forward_avx512(inputs, outputs) };
+            unsafe {
+                match relu {
+                    true => self.forward_avx512::<true>(inputs, outputs),
+                    false => self.forward_avx512::<false>(inputs, outputs),
+                }
+            };
             return;
         }
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
             // SAFETY: the CPU has the features the function is compiled for.
-            unsafe { self.forward_avx2(inputs, outputs) };
+            unsafe {
+                match relu {
+                    true => self.forward_avx2::<true>(inputs, outputs),
+                    false => self.forward_avx2::<false>(inputs, outputs),
+                }
+            };
             return;
         }
-        self.forward_scalar(inputs, outputs);
+        match relu {
+            true => self.forward_scalar::<true>(inputs, outputs),
+            false => self.forward_scalar::<false>(inputs, outputs),
+        }
     }
 
     /// The kernels' arithmetic one output at a time, for CPUs without AVX2 (and as the tests'
     /// reference): the same fused multiply-add chain, so every machine gives the same bits.
-    fn forward_scalar(&self, inputs: &[f32], outputs: &mut [f32]) {
+    fn forward_scalar<const RELU: bool>(&self, inputs: &[f32], outputs: &mut [f32]) {
         let (out, inp) = (self.output_dim(), self.input_dim());
         for (x, y) in inputs.chunks_exact(inp).zip(outputs.chunks_exact_mut(out)) {
             for (o, y) in y.iter_mut().enumerate() {
@@ -129,7 +157,7 @@ impl Dense {
                 for (j, &x) in x.iter().enumerate() {
                     acc = panel[j * PANEL + o % PANEL].mul_add(x, acc);
                 }
-                *y = acc;
+                *y = if RELU { relu(acc) } else { acc };
             }
         }
     }
@@ -138,7 +166,7 @@ impl Dense {
     /// rows, 12 accumulators in registers.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
-    unsafe fn forward_avx2(&self, inputs: &[f32], outputs: &mut [f32]) {
+    unsafe fn forward_avx2<const RELU: bool>(&self, inputs: &[f32], outputs: &mut [f32]) {
         let (out, inp) = (self.output_dim(), self.input_dim());
         let n = inputs.len() / inp;
         for tile in self.tiles(1) {
@@ -147,12 +175,12 @@ impl Dense {
                 // SAFETY: the CPU has AVX2 and FMA (this function's features).
                 unsafe {
                     match n - row {
-                        6.. => tile.avx2::<6>(x, y),
-                        5 => tile.avx2::<5>(x, y),
-                        4 => tile.avx2::<4>(x, y),
-                        3 => tile.avx2::<3>(x, y),
-                        2 => tile.avx2::<2>(x, y),
-                        _ => tile.avx2::<1>(x, y),
+                        6.. => tile.avx2::<6, RELU>(x, y),
+                        5 => tile.avx2::<5, RELU>(x, y),
+                        4 => tile.avx2::<4, RELU>(x, y),
+                        3 => tile.avx2::<3, RELU>(x, y),
+                        2 => tile.avx2::<2, RELU>(x, y),
+                        _ => tile.avx2::<1, RELU>(x, y),
                     }
                 }
             }
@@ -163,15 +191,15 @@ impl Dense {
     /// registers, so each broadcast input feeds two fused multiply-adds and each weight load 12.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx512f")]
-    unsafe fn forward_avx512(&self, inputs: &[f32], outputs: &mut [f32]) {
+    unsafe fn forward_avx512<const RELU: bool>(&self, inputs: &[f32], outputs: &mut [f32]) {
         let inp = self.input_dim();
         let n = inputs.len() / inp;
         for tile in self.tiles(2) {
             // SAFETY: the CPU has AVX-512F (this function's feature).
             unsafe {
                 match tile.panels {
-                    2 => tile.avx512_rows::<2>(n, inputs, outputs),
-                    _ => tile.avx512_rows::<1>(n, inputs, outputs),
+                    2 => tile.avx512_rows::<2, RELU>(n, inputs, outputs),
+                    _ => tile.avx512_rows::<1, RELU>(n, inputs, outputs),
                 }
             }
         }
@@ -225,7 +253,7 @@ impl Tile<'_> {
 
     /// R rows: `x` and `y` start at the first of them.
     #[target_feature(enable = "avx2,fma")]
-    unsafe fn avx2<const R: usize>(&self, x: &[f32], y: &mut [f32]) {
+    unsafe fn avx2<const R: usize, const RELU: bool>(&self, x: &[f32], y: &mut [f32]) {
         use std::arch::x86_64::*;
         let (inp, out) = (self.inp, self.out);
         assert!(self.panel.len() >= inp * PANEL && self.bias.len() >= PANEL);
@@ -242,6 +270,14 @@ impl Tile<'_> {
                     let xv = _mm256_broadcast_ss(&*xs.add(r * inp + j));
                     lo[r] = _mm256_fmadd_ps(w_lo, xv, lo[r]);
                     hi[r] = _mm256_fmadd_ps(w_hi, xv, hi[r]);
+                }
+            }
+            if RELU {
+                let zero = _mm256_setzero_ps();
+                for r in 0..R {
+                    // max(acc, 0) gives 0 for NaN and -0, as `relu` does.
+                    lo[r] = _mm256_max_ps(lo[r], zero);
+                    hi[r] = _mm256_max_ps(hi[r], zero);
                 }
             }
             let mut values = [0.0f32; PANEL];
@@ -261,25 +297,30 @@ impl Tile<'_> {
 
     /// Every one of `n` rows through this tile's P panels, 12 rows at a time.
     #[target_feature(enable = "avx512f")]
-    unsafe fn avx512_rows<const P: usize>(&self, n: usize, inputs: &[f32], outputs: &mut [f32]) {
+    unsafe fn avx512_rows<const P: usize, const RELU: bool>(
+        &self,
+        n: usize,
+        inputs: &[f32],
+        outputs: &mut [f32],
+    ) {
         let (inp, out) = (self.inp, self.out);
         for row in (0..n).step_by(12) {
             let (x, y) = (&inputs[row * inp..], &mut outputs[row * out..]);
             // SAFETY: the CPU has AVX-512F (this function's feature).
             unsafe {
                 match n - row {
-                    12.. => self.avx512::<12, P>(x, y),
-                    11 => self.avx512::<11, P>(x, y),
-                    10 => self.avx512::<10, P>(x, y),
-                    9 => self.avx512::<9, P>(x, y),
-                    8 => self.avx512::<8, P>(x, y),
-                    7 => self.avx512::<7, P>(x, y),
-                    6 => self.avx512::<6, P>(x, y),
-                    5 => self.avx512::<5, P>(x, y),
-                    4 => self.avx512::<4, P>(x, y),
-                    3 => self.avx512::<3, P>(x, y),
-                    2 => self.avx512::<2, P>(x, y),
-                    _ => self.avx512::<1, P>(x, y),
+                    12.. => self.avx512::<12, P, RELU>(x, y),
+                    11 => self.avx512::<11, P, RELU>(x, y),
+                    10 => self.avx512::<10, P, RELU>(x, y),
+                    9 => self.avx512::<9, P, RELU>(x, y),
+                    8 => self.avx512::<8, P, RELU>(x, y),
+                    7 => self.avx512::<7, P, RELU>(x, y),
+                    6 => self.avx512::<6, P, RELU>(x, y),
+                    5 => self.avx512::<5, P, RELU>(x, y),
+                    4 => self.avx512::<4, P, RELU>(x, y),
+                    3 => self.avx512::<3, P, RELU>(x, y),
+                    2 => self.avx512::<2, P, RELU>(x, y),
+                    _ => self.avx512::<1, P, RELU>(x, y),
                 }
             }
         }
@@ -287,7 +328,11 @@ impl Tile<'_> {
 
     /// R rows through P panels: `x` and `y` start at the first of the rows.
     #[target_feature(enable = "avx512f")]
-    unsafe fn avx512<const R: usize, const P: usize>(&self, x: &[f32], y: &mut [f32]) {
+    unsafe fn avx512<const R: usize, const P: usize, const RELU: bool>(
+        &self,
+        x: &[f32],
+        y: &mut [f32],
+    ) {
         use std::arch::x86_64::*;
         let (inp, out) = (self.inp, self.out);
         assert!(P == self.panels);
@@ -311,12 +356,15 @@ impl Tile<'_> {
                 }
             }
             // Masked stores write only the outputs that exist, with no copy through memory.
+            let zero = _mm512_setzero_ps();
             for (r, acc) in acc.iter().enumerate() {
-                for (q, acc) in acc.iter().enumerate() {
+                for (q, &acc) in acc.iter().enumerate() {
+                    // max(acc, 0) gives 0 for NaN and -0, as `relu` does.
+                    let acc = if RELU { _mm512_max_ps(acc, zero) } else { acc };
                     let first = self.first + q * PANEL;
                     let width = PANEL.min(out - first);
                     let mask = (u32::MAX >> (32 - width)) as __mmask16;
-                    _mm512_mask_storeu_ps(y.as_mut_ptr().add(r * out + first), mask, *acc);
+                    _mm512_mask_storeu_ps(y.as_mut_ptr().add(r * out + first), mask, acc);
                 }
             }
         }
@@ -529,12 +577,21 @@ impl Mlp {
                 0 => inputs,
                 _ => &before[i - 1][..n * dense.input_dim()],
             };
-            dense.forward_rows(x, out);
-            if let Some(norm) = self.norms.get(i) {
-                norm.apply_rows(out);
-            }
-            if i + 1 < last || self.activate_output {
-                self.activation.apply(out);
+            let activate = i + 1 < last || self.activate_output;
+            match self.norms.get(i) {
+                // ReLU straight after the layer goes into the kernel's store.
+                None if activate && self.activation == Activation::Relu => {
+                    dense.forward_rows_relu(x, out)
+                }
+                norm => {
+                    dense.forward_rows(x, out);
+                    if let Some(norm) = norm {
+                        norm.apply_rows(out);
+                    }
+                    if activate {
+                        self.activation.apply(out);
+                    }
+                }
             }
         }
         match (scratch.outputs.last(), self.layers.last()) {
@@ -730,22 +787,39 @@ mod tests {
     fn every_kernel_gives_the_scalar_bits() {
         // Partial panels (37 = 16 + 16 + 5 outputs: a two-panel tile, then a lone partial panel;
         // 53 = 16 + 16 + 16 + 5: a partial panel inside a two-panel tile), every tile height,
-        // one input.
+        // one input; with and without the fused ReLU, and a NaN input in the first row.
+        let bits = |v: &[f32]| v.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
         for (out, inp) in [(37, 23), (53, 7), (16, 1), (5, 256), (256, 18)] {
             let d = layer(out, inp, 5.0);
             for n in [1, 2, 5, 6, 7, 12, 13, 25] {
-                let x: Vec<f32> = (0..n * inp).map(|i| (i as f32 * 0.29).sin()).collect();
-                let mut expected = vec![0.0; n * out];
-                d.forward_scalar(&x, &mut expected);
+                let mut x: Vec<f32> = (0..n * inp).map(|i| (i as f32 * 0.29).sin()).collect();
+                x[inp - 1] = f32::NAN;
+                let mut plain = vec![0.0; n * out];
+                d.forward_scalar::<false>(&x, &mut plain);
+                let mut rectified = vec![0.0; n * out];
+                d.forward_scalar::<true>(&x, &mut rectified);
+                let mut unfused = plain.clone();
+                Activation::Relu.apply(&mut unfused);
+                assert_eq!(bits(&rectified), bits(&unfused), "{out}x{inp}, {n} rows");
+                assert!(rectified[..out].iter().all(|&v| v == 0.0));
                 let mut got = vec![f32::NAN; n * out];
                 d.forward_rows(&x, &mut got);
-                assert_eq!(got, expected, "{out}x{inp}, {n} rows");
+                assert_eq!(bits(&got), bits(&plain), "{out}x{inp}, {n} rows");
+                d.forward_rows_relu(&x, &mut got);
+                assert_eq!(bits(&got), bits(&rectified), "relu {out}x{inp}, {n} rows");
                 #[cfg(target_arch = "x86_64")]
                 if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
                     got.fill(f32::NAN);
                     // SAFETY: the CPU has the features.
-                    unsafe { d.forward_avx2(&x, &mut got) };
-                    assert_eq!(got, expected, "avx2 {out}x{inp}, {n} rows");
+                    unsafe { d.forward_avx2::<false>(&x, &mut got) };
+                    assert_eq!(bits(&got), bits(&plain), "avx2 {out}x{inp}, {n} rows");
+                    // SAFETY: as above.
+                    unsafe { d.forward_avx2::<true>(&x, &mut got) };
+                    assert_eq!(
+                        bits(&got),
+                        bits(&rectified),
+                        "avx2 relu {out}x{inp}, {n} rows"
+                    );
                 }
             }
         }
