@@ -59,6 +59,10 @@ enum Command {
     /// Hopper-sized networks at plan lengths 1, 8, 32, alone and batched across sessions, against
     /// the machine's matmul rate.
     BenchReplan(cli::bench_replan::BenchReplanArgs),
+    /// The dynamics model's forecasts against what followed on the bundle's own domain, at each
+    /// eps coefficient: k-step errors of held plans and along the executed actions, predictions
+    /// against the observation bounds, and what the plan held before each fall.
+    ModelError(cli::model_error::ModelErrorArgs),
 }
 
 fn main() -> ExitCode {
@@ -81,6 +85,7 @@ fn main() -> ExitCode {
         #[cfg(feature = "train")]
         Command::BenchTrain(args) => args.run(),
         Command::BenchReplan(args) => args.run(),
+        Command::ModelError(args) => args.run(),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -13,6 +13,7 @@ pub mod evaluate;
 #[cfg(feature = "train")]
 pub mod fit_model;
 pub mod inspect;
+pub mod model_error;
 pub mod play_from_states;
 #[cfg(feature = "render")]
 pub mod render;

@@ -43,6 +43,17 @@ pub struct EnvSpec {
 }
 
 impl EnvSpec {
+    /// The lowest and highest observation bound over the dimensions.
+    pub fn obs_range(&self) -> (f32, f32) {
+        let lo = self.obs_low.iter().copied().fold(f32::INFINITY, f32::min);
+        let hi = self
+            .obs_high
+            .iter()
+            .copied()
+            .fold(f32::NEG_INFINITY, f32::max);
+        (lo, hi)
+    }
+
     /// The lowest and highest action bound over the dimensions.
     pub fn action_range(&self) -> (f32, f32) {
         let lo = self

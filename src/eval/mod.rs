@@ -1,6 +1,8 @@
 //! Rollouts for evaluation: episode returns (plain and discounted), the value scale
 //! (V_pi and V_rand at the start state) and the dynamics model's prediction error.
 
+pub mod forecasts;
+
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
@@ -252,6 +254,31 @@ pub fn model_errors_by_action(
     (groups.remove(0), exploratory)
 }
 
+/// Each observation's scale for model errors: the model's observation standard deviations (1
+/// without a model).
+pub(crate) fn observation_scale(policy: &Policy) -> Vec<f64> {
+    match &policy.model {
+        Some(model) => model
+            .normalization
+            .obs_std
+            .iter()
+            .map(|&s| f64::from(s).max(1e-6))
+            .collect(),
+        None => vec![1.0; policy.obs_dim()],
+    }
+}
+
+/// RMS over the entries of (predicted - truth) / scale.
+pub(crate) fn normalised_rms(scale: &[f64], predicted: &[f32], truth: &[f32]) -> f64 {
+    let sq: f64 = predicted
+        .iter()
+        .zip(truth)
+        .zip(scale)
+        .map(|((p, t), s)| ((f64::from(*p) - f64::from(*t)) / s).powi(2))
+        .sum();
+    (sq / predicted.len().max(1) as f64).sqrt()
+}
+
 /// Normalised RMS errors of k-step rollouts from every start, averaged per group of windows
 /// (`group` of a trajectory and the window's action rows).
 fn grouped_model_errors(
@@ -262,15 +289,10 @@ fn grouped_model_errors(
     group: impl Fn(&Trajectory<'_>, std::ops::Range<usize>) -> usize,
 ) -> Vec<Vec<ModelError>> {
     let (od, ad) = (policy.obs_dim(), policy.act_dim());
-    let Some(model) = &policy.model else {
+    if policy.model.is_none() {
         return vec![Vec::new(); groups];
-    };
-    let scale: Vec<f64> = model
-        .normalization
-        .obs_std
-        .iter()
-        .map(|&s| f64::from(s).max(1e-6))
-        .collect();
+    }
+    let scale = observation_scale(policy);
     let mut evaluator = Evaluator::new(policy.clone());
     let kmax = ks.iter().copied().max().unwrap_or(0);
     let mut sums = vec![vec![0.0f64; kmax + 1]; groups];
@@ -286,11 +308,8 @@ fn grouped_model_errors(
                 evaluator.predict_next(&state, &traj.actions[t * ad..(t + 1) * ad], &mut next);
                 state.copy_from_slice(&next);
                 let truth = &traj.observations[(t + 1) * od..(t + 2) * od];
-                let sq: f64 = (0..od)
-                    .map(|i| ((f64::from(state[i]) - f64::from(truth[i])) / scale[i]).powi(2))
-                    .sum();
                 let g = group(traj, start..start + k);
-                sums[g][k] += (sq / od as f64).sqrt();
+                sums[g][k] += normalised_rms(&scale, &state, truth);
                 counts[g][k] += 1;
             }
         }
