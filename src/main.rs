@@ -63,6 +63,10 @@ enum Command {
     /// eps coefficient: k-step errors of held plans and along the executed actions, predictions
     /// against the observation bounds, and what the plan held before each fall.
     ModelError(cli::model_error::ModelErrorArgs),
+    /// Write each bundle's domain observation space into it as `obs_bounds` (format 4), which
+    /// keeps the model's forecasts inside it: for bundles of prac's domains made before bundles
+    /// carried them.
+    ObsBounds(cli::obs_bounds::ObsBoundsArgs),
 }
 
 fn main() -> ExitCode {
@@ -86,6 +90,7 @@ fn main() -> ExitCode {
         Command::BenchTrain(args) => args.run(),
         Command::BenchReplan(args) => args.run(),
         Command::ModelError(args) => args.run(),
+        Command::ObsBounds(args) => args.run(),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -14,8 +14,11 @@ pub(crate) const FORMAT_VERSION: u32 = 1;
 pub const FORMAT_VERSION_ACTOR_KINDS: u32 = 2;
 /// Version 3 adds `critic.layer_norm` (critics with a layer norm after each hidden layer).
 pub(crate) const FORMAT_VERSION_CRITIC_NORMS: u32 = 3;
+/// Version 4 adds `obs_bounds` (the observation space, which keeps the model's forecasts inside
+/// it).
+pub const FORMAT_VERSION_OBS_BOUNDS: u32 = 4;
 /// The newest version this prac reads.
-pub(crate) const NEWEST_FORMAT_VERSION: u32 = FORMAT_VERSION_CRITIC_NORMS;
+pub(crate) const NEWEST_FORMAT_VERSION: u32 = FORMAT_VERSION_OBS_BOUNDS;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Manifest {
@@ -45,7 +48,44 @@ pub struct Manifest {
     /// The observation normalisation the actor and critics were trained behind (format 2).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub obs_normalization: Option<ObsNormalization>,
+    /// The observation space (format 4): every observation the model predicts is clamped into it.
+    /// Absent: forecasts are not bounded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub obs_bounds: Option<ObsBounds>,
     pub provenance: Provenance,
+}
+
+/// Per feature, the lowest and highest value an observation takes; null on a side where the
+/// space is unbounded (a gymnasium Box's infinite bounds).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ObsBounds {
+    pub low: Vec<Option<f32>>,
+    pub high: Vec<Option<f32>>,
+}
+
+impl ObsBounds {
+    /// Bounds from limits where an infinite limit means unbounded.
+    pub fn from_limits(low: &[f32], high: &[f32]) -> ObsBounds {
+        let side = |v: &[f32]| v.iter().map(|&x| x.is_finite().then_some(x)).collect();
+        ObsBounds {
+            low: side(low),
+            high: side(high),
+        }
+    }
+
+    /// The limits to clamp to, infinite where unbounded.
+    pub(crate) fn limits(&self) -> (Vec<f32>, Vec<f32>) {
+        (
+            self.low
+                .iter()
+                .map(|v| v.unwrap_or(f32::NEG_INFINITY))
+                .collect(),
+            self.high
+                .iter()
+                .map(|v| v.unwrap_or(f32::INFINITY))
+                .collect(),
+        )
+    }
 }
 
 /// The actor: its trunk's widths and activation, and what its heads mean.
@@ -220,6 +260,41 @@ impl Manifest {
                     self.format_version
                 ),
             );
+        }
+        if let Some(bounds) = &self.obs_bounds {
+            if self.format_version < FORMAT_VERSION_OBS_BOUNDS {
+                return fail(
+                    "obs_bounds",
+                    format!(
+                        "needs format_version {FORMAT_VERSION_OBS_BOUNDS}, the bundle says {}",
+                        self.format_version
+                    ),
+                );
+            }
+            for (field, side) in [("low", &bounds.low), ("high", &bounds.high)] {
+                if side.len() != self.obs_dim {
+                    return fail(
+                        &format!("obs_bounds.{field}"),
+                        format!("has {} entries, obs_dim is {}", side.len(), self.obs_dim),
+                    );
+                }
+                if let Some(i) = side.iter().position(|v| v.is_some_and(|v| !v.is_finite())) {
+                    return fail(
+                        &format!("obs_bounds.{field}[{i}]"),
+                        "is not finite (null means unbounded)".into(),
+                    );
+                }
+            }
+            for (i, (lo, hi)) in bounds.low.iter().zip(&bounds.high).enumerate() {
+                if let (Some(lo), Some(hi)) = (lo, hi)
+                    && lo > hi
+                {
+                    return fail(
+                        &format!("obs_bounds.low[{i}]"),
+                        format!("{lo} is above obs_bounds.high[{i}] = {hi}"),
+                    );
+                }
+            }
         }
         if self.format_version < FORMAT_VERSION_CRITIC_NORMS && self.critic.layer_norm {
             return fail(

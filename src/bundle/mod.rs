@@ -604,6 +604,28 @@ pub fn to_bytes_with_manifest(
     safetensors::serialize(views, Some(metadata))
 }
 
+/// Gives a bundle of one of prac's domains that domain's observation space as its `obs_bounds`
+/// (format 4), for bundles made before bundles carried them. False, and nothing changed, when
+/// the domain is not prac's or its observations are not the bundle's size.
+pub fn add_domain_obs_bounds(policy: &mut Policy) -> bool {
+    let Some(env) = crate::domains::make(&policy.manifest.domain) else {
+        return false;
+    };
+    let spec = env.spec();
+    if spec.obs_dim != policy.manifest.obs_dim {
+        return false;
+    }
+    let manifest = &mut policy.manifest;
+    manifest.obs_bounds = Some(crate::manifest::ObsBounds::from_limits(
+        &spec.obs_low,
+        &spec.obs_high,
+    ));
+    manifest.format_version = manifest
+        .format_version
+        .max(crate::manifest::FORMAT_VERSION_OBS_BOUNDS);
+    true
+}
+
 /// Writes a policy as a bundle file (atomically: a temporary file renamed into place, so a server
 /// never reads half a bundle).
 pub fn save(policy: &Policy, path: &Path) -> std::io::Result<()> {

@@ -523,8 +523,8 @@ fn actor_kinds_need_format_2_and_a_clip_only_where_it_means_something() {
             .contains("only for gaussian_sde actors")
     );
     let mut newer = small_policy();
-    newer.manifest.format_version = 4;
-    assert!(reason(newer).contains("this prac reads versions 1 to 3"));
+    newer.manifest.format_version = 5;
+    assert!(reason(newer).contains("this prac reads versions 1 to 4"));
     // A Gaussian actor's manifest says nothing of kinds: version-1 bytes stay as they were.
     let json = serde_json::to_string(&small_policy().manifest).unwrap();
     assert!(
@@ -635,4 +635,84 @@ fn a_bad_obs_normalization_is_named() {
     // Bundles without it say nothing of it.
     let json = serde_json::to_string(&plain.manifest).unwrap();
     assert!(!json.contains("obs_normalization"), "{json}");
+}
+
+fn bounded(policy: &Policy, bounds: crate::manifest::ObsBounds) -> Policy {
+    let mut policy = policy.clone();
+    policy.manifest.format_version = crate::manifest::FORMAT_VERSION_OBS_BOUNDS;
+    policy.manifest.obs_bounds = Some(bounds);
+    policy
+}
+
+#[test]
+fn observation_bounds_round_trip_and_keep_every_prediction_inside() {
+    use crate::manifest::ObsBounds;
+    let inf = f32::INFINITY;
+    // Feature 3 is unbounded above, feature 2 below: null in JSON.
+    let bounds = ObsBounds::from_limits(&[-0.1, -0.2, -inf, -0.1], &[0.1, 0.2, 0.1, inf]);
+    assert_eq!(bounds.low[2], None);
+    assert_eq!(bounds.high[3], None);
+    let policy = bounded(&small_policy(), bounds.clone());
+    let loaded = from_bytes(&to_bytes(&policy).unwrap(), &path()).unwrap();
+    assert_eq!(loaded.manifest.obs_bounds, Some(bounds));
+    let (loaded, plain) = (Arc::new(loaded), Arc::new(small_policy()));
+    let (mut served, mut unbounded) = (Evaluator::new(loaded), Evaluator::new(plain));
+    let obs: Vec<f32> = (0..4 * 16)
+        .map(|i| ((i as f32) * 0.7).sin() * 3.0)
+        .collect();
+    let actions: Vec<f32> = (0..2 * 16).map(|i| ((i as f32) * 0.3).cos()).collect();
+    let (mut got, mut raw) = (vec![0.0; 4 * 16], vec![0.0; 4 * 16]);
+    served.predict_next(&obs, &actions, &mut got);
+    unbounded.predict_next(&obs, &actions, &mut raw);
+    let (low, high) = ([-0.1, -0.2, -inf, -0.1], [0.1, 0.2, 0.1, inf]);
+    let mut clamped = 0;
+    for (k, (g, r)) in got.iter().zip(&raw).enumerate() {
+        let (lo, hi) = (low[k % 4], high[k % 4]);
+        assert!((lo..=hi).contains(g), "feature {}: {g}", k % 4);
+        // Inside the bounds a prediction is the model's own; outside, the nearest bound.
+        assert_eq!(*g, r.clamp(lo, hi));
+        clamped += usize::from(g != r);
+    }
+    assert!(
+        clamped > 0,
+        "no prediction left the bounds: the test shows nothing"
+    );
+    // A non-finite prediction stays non-finite, for Replan to refuse.
+    let mut nan_obs = obs.clone();
+    nan_obs[0] = f32::NAN;
+    served.predict_next(&nan_obs, &actions, &mut got);
+    assert!(got[..4].iter().any(|v| v.is_nan()));
+}
+
+#[test]
+fn bad_observation_bounds_are_named() {
+    use crate::manifest::ObsBounds;
+    let reason = |policy: Policy| {
+        let json = serde_json::to_string(&policy.manifest).unwrap();
+        let e = load_error(&rebuild(&tensors(&policy), Some(&json)));
+        format!("{}: {}", e.field, e.reason)
+    };
+    let plain = small_policy();
+    let good = ObsBounds::from_limits(&[-1.0; 4], &[1.0; 4]);
+    let mut old = bounded(&plain, good.clone());
+    old.manifest.format_version = crate::manifest::FORMAT_VERSION_CRITIC_NORMS;
+    assert_eq!(
+        reason(old),
+        "manifest.obs_bounds: needs format_version 4, the bundle says 3"
+    );
+    let mut short = good.clone();
+    short.high.pop();
+    assert_eq!(
+        reason(bounded(&plain, short)),
+        "manifest.obs_bounds.high: has 3 entries, obs_dim is 4"
+    );
+    let mut crossed = good;
+    crossed.low[1] = Some(2.0);
+    assert_eq!(
+        reason(bounded(&plain, crossed)),
+        "manifest.obs_bounds.low[1]: 2 is above obs_bounds.high[1] = 1"
+    );
+    // A bundle without bounds writes none: its bytes stay readable by older servers.
+    let json = serde_json::to_string(&plain.manifest).unwrap();
+    assert!(!json.contains("obs_bounds"), "{json}");
 }

@@ -14,6 +14,7 @@ pub mod evaluate;
 pub mod fit_model;
 pub mod inspect;
 pub mod model_error;
+pub mod obs_bounds;
 pub mod play_from_states;
 #[cfg(feature = "render")]
 pub mod render;

@@ -123,6 +123,9 @@ pub struct Evaluator {
     policy: Arc<Policy>,
     /// The bundle's observation normalisation, for the actor and critics.
     obs_scale: Option<ObsScale>,
+    /// The bundle's observation space (low, high; infinite where unbounded), which every
+    /// predicted observation is kept inside.
+    obs_limits: Option<(Vec<f32>, Vec<f32>)>,
     /// Normalised observations of the current call.
     normalized: Vec<f32>,
     actor: MlpScratch,
@@ -156,6 +159,7 @@ impl Evaluator {
                 .obs_normalization
                 .as_ref()
                 .map(ObsScale::new),
+            obs_limits: policy.manifest.obs_bounds.as_ref().map(|b| b.limits()),
             normalized: Vec::with_capacity(rows * od),
             actor: policy.actor.trunk.scratch_for(rows),
             mu: Vec::with_capacity(rows * ad),
@@ -271,6 +275,24 @@ impl Networks for Evaluator {
                 next_obs[k * od + i] = obs[k * od + i] + d;
             }
         }
+        if let Some((low, high)) = &self.obs_limits {
+            for row in next_obs[..n * od].chunks_exact_mut(od) {
+                for ((v, &lo), &hi) in row.iter_mut().zip(low).zip(high) {
+                    *v = keep_inside(*v, lo, hi);
+                }
+            }
+        }
+    }
+}
+
+/// `v` clamped to [lo, hi]; NaN stays NaN (Replan refuses it as a non-finite prediction).
+fn keep_inside(v: f32, lo: f32, hi: f32) -> f32 {
+    if v < lo {
+        lo
+    } else if v > hi {
+        hi
+    } else {
+        v
     }
 }
 

@@ -167,6 +167,7 @@ pub fn test_manifest(
             v_rand: -10.0,
         }),
         obs_normalization: None,
+        obs_bounds: None,
         provenance: Provenance {
             trainer: "random init (test)".to_string(),
             steps: 0,

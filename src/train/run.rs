@@ -20,8 +20,9 @@ use super::model::ModelTrainer;
 use super::options::{Progress, TrainOptions};
 use super::sac::{Batch, Sac, SacConfig, SacLosses};
 use crate::bundle::{
-    ActorKind, ActorSpec, CriticSpec, FORMAT_VERSION, FORMAT_VERSION_ACTOR_KINDS,
-    FORMAT_VERSION_CRITIC_NORMS, Manifest, ModelSpec, Provenance, QAggregation, ValueScale,
+    ActorKind, ActorSpec, CriticSpec, FORMAT_VERSION_ACTOR_KINDS, FORMAT_VERSION_CRITIC_NORMS,
+    FORMAT_VERSION_OBS_BOUNDS, Manifest, ModelSpec, ObsBounds, Provenance, QAggregation,
+    ValueScale,
 };
 use crate::domains::{self, Env, EnvSpec, EpisodeTotals};
 use crate::eval::{self, ModelError, Trajectory};
@@ -61,7 +62,8 @@ pub(crate) fn manifest(
     seed: u64,
 ) -> Manifest {
     Manifest {
-        format_version: FORMAT_VERSION,
+        // The domain's observation space bounds the model's forecasts (format 4).
+        format_version: FORMAT_VERSION_OBS_BOUNDS,
         name: spec.name.to_string(),
         domain: spec.name.to_string(),
         obs_dim: spec.obs_dim,
@@ -89,6 +91,7 @@ pub(crate) fn manifest(
         q_aggregation: QAggregation::Min,
         value_scale: None,
         obs_normalization: None,
+        obs_bounds: Some(ObsBounds::from_limits(&spec.obs_low, &spec.obs_high)),
         provenance: Provenance {
             trainer: "prac train (SAC + dynamics model, burn 0.22.1)".to_string(),
             steps,
@@ -112,11 +115,11 @@ pub(crate) fn snapshot(
         m.hidden = model.hidden();
     }
     if sac.config.norm_obs {
-        manifest.format_version = FORMAT_VERSION_ACTOR_KINDS;
+        manifest.format_version = manifest.format_version.max(FORMAT_VERSION_ACTOR_KINDS);
         manifest.obs_normalization = Some(model.stats.obs.obs_normalization());
     }
     if sac.config.critic_layer_norm {
-        manifest.format_version = FORMAT_VERSION_CRITIC_NORMS;
+        manifest.format_version = manifest.format_version.max(FORMAT_VERSION_CRITIC_NORMS);
     }
     Policy {
         manifest,

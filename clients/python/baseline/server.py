@@ -114,6 +114,12 @@ class Policy:
         n = spec["normalization"]
         self.norm = {k: np.array(v, dtype=F32) for k, v in n.items()}
         self.value_scale = m.get("value_scale")
+        bounds = m.get("obs_bounds")
+        # The observation space the forecasts are kept inside (infinite where unbounded).
+        self.obs_limits = None if bounds is None else (
+            np.array([-np.inf if v is None else v for v in bounds["low"]], dtype=F32),
+            np.array([np.inf if v is None else v for v in bounds["high"]], dtype=F32),
+        )
 
     def act(self, s: np.ndarray) -> np.ndarray:
         """Deterministic actions tanh(mu) in [-1, 1], one row per state."""
@@ -127,7 +133,11 @@ class Policy:
     def predict(self, s: np.ndarray, a: np.ndarray) -> np.ndarray:
         n = self.norm
         x = np.concatenate([(s - n["obs_mean"]) / n["obs_std"], (a - n["action_mean"]) / n["action_std"]], axis=1)
-        return s + (self.model(x) * n["delta_std"] + n["delta_mean"])
+        predicted = s + (self.model(x) * n["delta_std"] + n["delta_mean"])
+        if self.obs_limits is not None:
+            # np.clip keeps NaN, as the server does (a non-finite prediction is refused).
+            predicted = np.clip(predicted, self.obs_limits[0], self.obs_limits[1])
+        return predicted
 
     def unscale(self, a: np.ndarray) -> np.ndarray:
         return self.low + 0.5 * (a + 1.0) * (self.high - self.low)

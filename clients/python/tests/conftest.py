@@ -29,10 +29,17 @@ def prac_bin() -> str:
 
 
 def write_toy_bundle(
-    directory: pathlib.Path, name: str = "pendulum", *, model: bool = True, seed: int = 1, layer_norm: bool = False
+    directory: pathlib.Path,
+    name: str = "pendulum",
+    *,
+    model: bool = True,
+    seed: int = 1,
+    layer_norm: bool = False,
+    obs_bounds: tuple[list[float], list[float]] | None = None,
 ) -> pathlib.Path:
     """A random Pendulum-shaped policy: obs 3, act 1 in [-2, 2], value scale (10, -10); with
-    `layer_norm`, its critics normalise each hidden layer (with_layer_norm_critics)."""
+    `layer_norm`, its critics normalise each hidden layer (with_layer_norm_critics); with
+    `obs_bounds` (low, high), its forecasts are kept inside them."""
     state = random_sb3_state_dict(3, 1, [32, 32], seed=seed)
     tensors, manifest = from_sb3_state_dict(
         state,
@@ -43,6 +50,7 @@ def write_toy_bundle(
         gamma=0.98,
         value_scale=(10.0, -10.0),
         model=random_model(3, 1, [16, 16], seed=seed) if model else None,
+        obs_bounds=obs_bounds,
     )
     if layer_norm:
         tensors, manifest = with_layer_norm_critics(dict(tensors), dict(manifest))

@@ -28,7 +28,22 @@ def test_the_baseline_answers_as_prac_serve_does_with_layer_norm_critics(tmp_pat
         server.stop()
 
 
-def answers_alike(bundles: pathlib.Path, server: Server) -> None:
+def test_the_baseline_keeps_forecasts_inside_the_observation_bounds_as_prac_serve_does(tmp_path: pathlib.Path) -> None:
+    # Bounds tighter than the observations the test sends (within [-3, 3]), one side unbounded.
+    write_toy_bundle(tmp_path, obs_bounds=([-0.5, -0.5, -float("inf")], [0.5, 0.5, 0.2]))
+    server = Server(tmp_path)
+    try:
+        seen = answers_alike(tmp_path, server)
+    finally:
+        server.stop()
+    assert seen.size > 0
+    assert (seen[:, :2] >= -0.5).all() and (seen[:, :2] <= 0.5).all() and (seen[:, 2] <= 0.2).all()
+    assert (seen[:, 2] < -0.5).any(), "the unbounded side was bounded"
+
+
+def answers_alike(bundles: pathlib.Path, server: Server) -> np.ndarray:
+    """Steps both servers alike and compares every answer; returns prac serve's forecast
+    observations."""
     baseline = subprocess.Popen(
         [sys.executable, str(REPO / "clients" / "python" / "baseline" / "server.py"), "--bundles", str(bundles), "--listen", "127.0.0.1:0"],
         stdout=subprocess.PIPE,
@@ -41,6 +56,7 @@ def answers_alike(bundles: pathlib.Path, server: Server) -> None:
         address = line.removeprefix("listening on ").strip()
         rng = np.random.default_rng(5)
         breaks = 0
+        forecasts: list[np.ndarray] = []
         with Client(server.address, timeout=10) as ours, Client(address, timeout=10) as theirs:
             for epsilon, growth in ((1e-4, "grow 2"), (1e-3, "fixed 6"), (0.0, "grow 1")):
                 a = ours.session("pendulum", epsilon=epsilon, growth=growth, max_horizon=12)
@@ -50,12 +66,15 @@ def answers_alike(bundles: pathlib.Path, server: Server) -> None:
                     ra, rb = a.step(obs, new_episode=t % 40 == 0), b.step(obs, new_episode=t % 40 == 0)
                     np.testing.assert_allclose(ra.action, rb.action, atol=1e-3, err_msg=f"{growth} step {t}")
                     np.testing.assert_allclose(ra.forecast_actions, rb.forecast_actions, atol=1e-3)
+                    np.testing.assert_allclose(ra.forecast_observations, rb.forecast_observations, atol=1e-3)
+                    forecasts.extend(np.asarray(ra.forecast_observations).reshape(-1, 3))
                     assert (ra.kept, ra.broke_at, ra.f_t, ra.step, ra.episode) == (rb.kept, rb.broke_at, rb.f_t, rb.step, rb.episode), t
                     breaks += ra.broke_at is not None
                     # Near the plan's predictions, with noise: some plans hold, some break.
                     obs = np.clip(ra.forecast_observations[0] + rng.uniform(-0.3, 0.3, 3), -3, 3)
                 assert a.close() == b.close() == 120
         assert breaks > 0
+        return np.array(forecasts)
     finally:
         baseline.terminate()
         baseline.wait(10)

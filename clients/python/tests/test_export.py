@@ -308,3 +308,20 @@ def test_an_obs_normalization_makes_a_format_2_bundle_the_server_checks(tmp_path
     )
     assert result.returncode != 0
     assert "obs_normalization.var[1]: is -1, a variance must be >= 0" in result.stderr + result.stdout
+
+
+def test_the_observation_space_becomes_the_bundles_obs_bounds() -> None:
+    facts = spaces_from_sb3_data(SB3_DATA)
+    np.testing.assert_array_equal(facts["obs_low"], [-1.0, -1.0, -8.0])
+    np.testing.assert_array_equal(facts["obs_high"], [1.0, 1.0, 8.0])
+    state = random_sb3_state_dict(3, 1, [8], seed=0)
+    common = {"name": "p", "domain": "pendulum", "action_low": [-2.0], "action_high": [2.0], "gamma": 0.98}
+    _, manifest = from_sb3_state_dict(state, **common, obs_bounds=([-1.0, -np.inf, -8.0], [1.0, np.inf, np.inf]))
+    assert manifest["format_version"] == 4
+    assert manifest["obs_bounds"] == {"low": [-1.0, None, -8.0], "high": [1.0, None, None]}
+    # Unbounded everywhere (a MuJoCo task's Box(-inf, inf)): no bounds, and the version stays.
+    _, unbounded = from_sb3_state_dict(state, **common, obs_bounds=([-np.inf] * 3, [np.inf] * 3))
+    assert "obs_bounds" not in unbounded and unbounded["format_version"] == 1
+    no_space = json.loads(json.dumps(SB3_DATA))
+    del no_space["observation_space"]["low"], no_space["observation_space"]["high"]
+    assert spaces_from_sb3_data(no_space)["obs_low"] is None

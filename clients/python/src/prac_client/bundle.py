@@ -16,6 +16,9 @@ FORMAT_VERSION = 1
 # Version 2 adds the actor's kind (gaussian_sde, deterministic), mean_clip and obs_normalization; a
 # bundle that uses none of them stays version 1, so any prac reads it.
 FORMAT_VERSION_ACTOR_KINDS = 2
+# Version 4 adds obs_bounds, the observation space the server keeps the model's forecasts inside
+# (older servers refuse such a bundle rather than serve unbounded forecasts).
+FORMAT_VERSION_OBS_BOUNDS = 4
 ACTOR_KINDS = ("gaussian", "gaussian_sde", "deterministic")
 Array = npt.NDArray[np.float32]
 
@@ -83,6 +86,7 @@ def from_sb3_state_dict(
     actor_kind: str = "gaussian",
     mean_clip: float | None = None,
     obs_normalization: Mapping[str, Any] | None = None,
+    obs_bounds: tuple[npt.ArrayLike, npt.ArrayLike] | None = None,
 ) -> tuple[dict[str, Array], dict[str, Any]]:
     """Maps an SB3 SAC, TD3 or DDPG policy state dict (actor.*, critic.qf{k}.*; the target
     networks are dropped) to bundle tensors and manifest. `actor_kind` is "gaussian" (SAC),
@@ -90,7 +94,9 @@ def from_sb3_state_dict(
     "deterministic" (TD3, DDPG). Layer sizes come from the shapes. `model`, if given, holds the
     dynamics model: {"tensors": {model.net.*}, "hidden", "activation", "normalization"}.
     `obs_normalization` ({"mean", "var", "clip_obs", "epsilon"}, as SB3's VecNormalize applies
-    them) is what the actor and critics were trained behind."""
+    them) is what the actor and critics were trained behind. `obs_bounds` (low, high), the
+    observation space (e.g. a gymnasium Box's), keeps the model's forecasts inside it; infinite
+    entries are unbounded, and a space unbounded everywhere adds nothing."""
     if actor_kind not in ACTOR_KINDS:
         raise ValueError(f"actor kind {actor_kind!r}; expected one of {', '.join(ACTOR_KINDS)}")
     if mean_clip is not None and actor_kind != "gaussian_sde":
@@ -156,6 +162,11 @@ def from_sb3_state_dict(
             "clip_obs": float(obs_normalization["clip_obs"]),
             "epsilon": float(obs_normalization["epsilon"]),
         }
+    if obs_bounds is not None:
+        field = obs_bounds_field(obs_bounds[0], obs_bounds[1], int(obs_dim))
+        if field is not None:
+            manifest["obs_bounds"] = field
+            manifest["format_version"] = FORMAT_VERSION_OBS_BOUNDS
     if model is not None:
         for key, value in model["tensors"].items():
             tensors[key] = np.asarray(value, dtype=np.float32)
@@ -165,6 +176,20 @@ def from_sb3_state_dict(
             "normalization": {k: [float(x) for x in v] for k, v in model["normalization"].items()},
         }
     return tensors, manifest
+
+
+def obs_bounds_field(low: npt.ArrayLike, high: npt.ArrayLike, obs_dim: int) -> dict[str, list[float | None]] | None:
+    """The manifest's obs_bounds for an observation space: null where a side is infinite; None
+    where every side is."""
+    lo = np.broadcast_to(np.asarray(low, dtype=np.float32), (obs_dim,))
+    hi = np.broadcast_to(np.asarray(high, dtype=np.float32), (obs_dim,))
+    if not (np.isfinite(lo).any() or np.isfinite(hi).any()):
+        return None
+
+    def side(values: Array) -> list[float | None]:
+        return [float(v) if np.isfinite(v) else None for v in values]
+
+    return {"low": side(lo), "high": side(hi)}
 
 
 def write_bundle(path: str | os.PathLike[str], tensors: Mapping[str, Array], manifest: Mapping[str, Any]) -> None:

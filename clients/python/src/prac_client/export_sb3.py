@@ -90,6 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         actor_kind=facts["actor_kind"],
         mean_clip=facts["mean_clip"],
         obs_normalization=stats.bundle_field() if stats else None,
+        obs_bounds=(facts["obs_low"], facts["obs_high"]) if facts["obs_low"] is not None and facts["obs_high"] is not None else None,
     )
     if manifest["obs_dim"] != facts["obs_dim"]:
         raise SystemExit(f"actor takes {manifest['obs_dim']} inputs, observation space has {facts['obs_dim']}")

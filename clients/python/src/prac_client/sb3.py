@@ -33,12 +33,15 @@ def _array(text: Any) -> npt.NDArray[np.float32]:
 
 
 def spaces_from_sb3_data(data: Mapping[str, Any]) -> dict[str, Any]:
-    """obs_dim, action bounds, gamma and activation from SB3's `data` JSON."""
+    """obs_dim, observation and action bounds, gamma and activation from SB3's `data` JSON
+    (observation bounds None where the checkpoint does not record them)."""
     obs = data["observation_space"]
     act = data["action_space"]
     shape = obs.get("_shape") or obs.get("shape")
     if shape is None or len(shape) != 1:
         raise ValueError(f"observation space shape {shape}: only flat Box observations are supported")
+    obs_low = np.broadcast_to(_array(obs["low"]), tuple(shape)).astype(np.float32) if "low" in obs else None
+    obs_high = np.broadcast_to(_array(obs["high"]), tuple(shape)).astype(np.float32) if "high" in obs else None
     low, high = _array(act["low"]), _array(act["high"])
     act_shape = act.get("_shape") or act.get("shape") or [low.size]
     low = np.broadcast_to(low, tuple(act_shape)).astype(np.float32)
@@ -52,6 +55,8 @@ def spaces_from_sb3_data(data: Mapping[str, Any]) -> dict[str, Any]:
         raise ValueError(f"activation {fn}: prac bundles support ReLU and Tanh")
     return {
         "obs_dim": int(shape[0]),
+        "obs_low": obs_low,
+        "obs_high": obs_high,
         "action_low": low,
         "action_high": high,
         "gamma": float(data.get("gamma", 0.99)),
