@@ -471,7 +471,12 @@ fn norm_obs_runs_ship_their_statistics_and_resume_only_with_the_flag() {
         norm.mean[0].abs() <= 1.0 && norm.var[2] > norm.var[0],
         "{norm:?}"
     );
-    assert_eq!(bundle.manifest.format_version, 2);
+    // Trained bundles carry their domain's observation space, which needs format 4.
+    assert_eq!(
+        bundle.manifest.format_version,
+        crate::manifest::FORMAT_VERSION_OBS_BOUNDS
+    );
+    assert!(bundle.manifest.obs_bounds.is_some());
 
     let state = std::fs::read(options.checkpoint_dir.join("state.json")).unwrap();
     let mut plain = options.clone();
@@ -572,7 +577,10 @@ fn layer_norm_critics_ship_in_pytorchs_layout_and_resume_only_with_the_flag() {
     let model = ModelTrainer::new(od, ad, &[8, 8], 1e-4, &mut rng, &sac.device);
     let policy = snapshot(&sac, &model, &spec, 0, 0);
     assert!(policy.manifest.critic.layer_norm);
-    assert_eq!(policy.manifest.format_version, 3);
+    assert_eq!(
+        policy.manifest.format_version,
+        crate::manifest::FORMAT_VERSION_OBS_BOUNDS
+    );
     let names: Vec<String> = crate::bundle::tensors(&policy)
         .into_iter()
         .map(|(name, ..)| name)
