@@ -45,29 +45,20 @@ pub struct EnvSpec {
 impl EnvSpec {
     /// The lowest and highest observation bound over the dimensions.
     pub fn obs_range(&self) -> (f32, f32) {
-        let lo = self.obs_low.iter().copied().fold(f32::INFINITY, f32::min);
-        let hi = self
-            .obs_high
-            .iter()
-            .copied()
-            .fold(f32::NEG_INFINITY, f32::max);
-        (lo, hi)
+        span(&self.obs_low, &self.obs_high)
     }
 
     /// The lowest and highest action bound over the dimensions.
     pub fn action_range(&self) -> (f32, f32) {
-        let lo = self
-            .action_low
-            .iter()
-            .copied()
-            .fold(f32::INFINITY, f32::min);
-        let hi = self
-            .action_high
-            .iter()
-            .copied()
-            .fold(f32::NEG_INFINITY, f32::max);
-        (lo, hi)
+        span(&self.action_low, &self.action_high)
     }
+}
+
+/// The lowest of `low` and the highest of `high`.
+fn span(low: &[f32], high: &[f32]) -> (f32, f32) {
+    let lo = low.iter().copied().fold(f32::INFINITY, f32::min);
+    let hi = high.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    (lo, hi)
 }
 
 /// The outcome of one step (the observation is written into the caller's buffer).
