@@ -82,6 +82,24 @@ impl<N: Networks> Networks for Counting<N> {
         self.qs += 2 * q_a.len() as u64;
         self.inner.q_pair(obs, a, b, q_a, q_b)
     }
+    fn q_pair_gap(
+        &mut self,
+        obs: &[f32],
+        a: &[f32],
+        b: &[f32],
+        q_a: &mut [f32],
+        q_b: &mut [f32],
+        largest_gap: &mut [f32],
+    ) {
+        self.calls += 1;
+        self.qs += 2 * q_a.len() as u64;
+        self.inner.q_pair_gap(obs, a, b, q_a, q_b, largest_gap)
+    }
+    fn policy_distance(&mut self, obs: &[f32], actions: &[f32], distance: &mut [f32]) {
+        self.calls += 1;
+        self.acts += (obs.len() / self.obs_dim()) as u64;
+        self.inner.policy_distance(obs, actions, distance)
+    }
     fn predict_next(&mut self, obs: &[f32], actions: &[f32], next_obs: &mut [f32]) {
         self.calls += 1;
         self.predicts += (obs.len() / self.obs_dim()) as u64;
@@ -114,6 +132,7 @@ fn lengths_and_batches(lengths: &[usize], batches: &[usize], per_case: Duration)
                 growth: Growth::Fixed(length),
                 max_horizon: length,
                 sampled: false,
+                ..ReplanConfig::default()
             };
             let mut nets = Counting {
                 inner: Evaluator::with_capacity(policy.clone(), batch),

@@ -30,6 +30,14 @@ pub struct ModelErrorArgs {
     /// forecast reaches that far; without it, the session's default growth.
     #[arg(long)]
     fixed: Option<u32>,
+    /// Guard the plans (the session option guard.every_critic): any one critic rating a kept
+    /// action more than eps below pi(s) also breaks the plan.
+    #[arg(long)]
+    every_critic: bool,
+    /// Guard the plans (guard.support_limit): an action further than Z of the policy's
+    /// standard deviations from its mean also breaks the plan [default: no limit].
+    #[arg(long, value_name = "Z")]
+    support_limit: Option<f64>,
     /// Also write every figure, with the traces before falls, as JSON.
     #[arg(long)]
     json: Option<PathBuf>,
@@ -50,6 +58,12 @@ impl ModelErrorArgs {
             let options = prac::proto::SessionOptions {
                 tolerance: Some(Tolerance::EpsilonCoef(coef)),
                 growth: self.fixed.map(Growth::Fixed),
+                guard: (self.every_critic || self.support_limit.is_some()).then_some(
+                    prac::proto::PlanGuard {
+                        every_critic: self.every_critic,
+                        support_limit: self.support_limit.unwrap_or(0.0),
+                    },
+                ),
                 ..Default::default()
             };
             let config = SessionSettings::resolve(Some(&options), &policy, prac::plan::MAX_CHUNK)

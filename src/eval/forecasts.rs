@@ -315,6 +315,7 @@ mod tests {
             growth: Growth::Fixed(32),
             max_horizon: 32,
             sampled: false,
+            ..ReplanConfig::default()
         };
         forecast_errors(&policy, env.as_mut(), config, 2, 0).expect("plays")
     }

@@ -29,6 +29,38 @@ pub trait Networks {
     fn q_pair(&mut self, obs: &[f32], a: &[f32], b: &[f32], q_a: &mut [f32], q_b: &mut [f32]);
     /// The dynamics model's predictions of the next observations.
     fn predict_next(&mut self, obs: &[f32], actions: &[f32], next_obs: &mut [f32]);
+    /// [`Networks::q_pair`], and per row the largest gap any one critic sees:
+    /// `max_c (Q_c(obs, a) - Q_c(obs, b))`. A single critic's gap is `q_a - q_b`.
+    fn q_pair_gap(
+        &mut self,
+        obs: &[f32],
+        a: &[f32],
+        b: &[f32],
+        q_a: &mut [f32],
+        q_b: &mut [f32],
+        largest_gap: &mut [f32],
+    ) {
+        self.q_pair(obs, a, b, q_a, q_b);
+        for ((g, qa), qb) in largest_gap.iter_mut().zip(&*q_a).zip(&*q_b) {
+            *g = qa - qb;
+        }
+    }
+    /// Per row, how far `actions` lie from the policy's Gaussian at `obs`: the largest
+    /// [`support_distance`] over the action's dimensions. NaN for an actor without a Gaussian.
+    fn policy_distance(&mut self, obs: &[f32], actions: &[f32], distance: &mut [f32]);
+}
+
+/// The largest squashed action magnitude whose pre-tanh value [`support_distance`] takes; both
+/// the action and the mean are clamped to it, so actions at the bounds compare finitely.
+const SQUASHED_LIMIT: f32 = 1.0 - f32::EPSILON;
+
+/// How many of the policy's standard deviations the squashed action component `action` lies
+/// from the Gaussian's mean `mu` before tanh: `|atanh(a) - mu'| / std` with `a` clamped to
+/// +-(1 - 2^-23) and `mu'` to +-atanh(1 - 2^-23).
+pub fn support_distance(action: f32, mu: f32, std: f32) -> f32 {
+    let pre_limit = SQUASHED_LIMIT.atanh();
+    let pre = action.clamp(-SQUASHED_LIMIT, SQUASHED_LIMIT).atanh();
+    (pre - mu.clamp(-pre_limit, pre_limit)).abs() / std
 }
 
 /// How the plan is extended after its kept part.
@@ -48,11 +80,31 @@ impl Default for Growth {
 
 pub const DEFAULT_MAX_HORIZON: usize = 32;
 
+/// Conditions that also break a plan at an old action `a`, beyond the paper's test. Algorithm 2
+/// trusts the critics' aggregate at actions the policy would not take, where a critic errs most;
+/// these keep an action only where the critics are on firmer ground. Off by default (the paper).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Guard {
+    /// Break where any one critic rates `a` more than eps below pi(s):
+    /// `max_c (Q_c(s, pi(s)) - Q_c(s, a)) > eps`.
+    pub every_critic: bool,
+    /// Break where `a` lies more than this many of the policy's standard deviations from its
+    /// mean at s ([`Networks::policy_distance`]); 0 sets no limit.
+    pub support_limit: f32,
+}
+
+impl Guard {
+    pub fn is_off(&self) -> bool {
+        !self.every_critic && self.support_limit <= 0.0
+    }
+}
+
 /// Per-session Replan settings, with eps already absolute.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ReplanConfig {
     /// Tolerance of the test `Q(s, a) + eps < Q(s, pi(s))`; >= 0.
     pub epsilon: f32,
+    pub guard: Guard,
     pub growth: Growth,
     /// Longest plan, including the action executed now; >= 1.
     pub max_horizon: usize,
@@ -64,6 +116,7 @@ impl Default for ReplanConfig {
     fn default() -> Self {
         ReplanConfig {
             epsilon: 0.0,
+            guard: Guard::default(),
             growth: Growth::default(),
             max_horizon: DEFAULT_MAX_HORIZON,
             sampled: false,
@@ -398,6 +451,10 @@ pub struct ReplanScratch {
     out: Vec<f32>,
     q_policy: Vec<f32>,
     q_planned: Vec<f32>,
+    /// Per tested old action, for guarded jobs: the largest one-critic gap and the policy
+    /// distance.
+    largest_gap: Vec<f32>,
+    distance: Vec<f32>,
 }
 
 impl ReplanScratch {
@@ -424,6 +481,8 @@ impl ReplanScratch {
             out: Vec::with_capacity(rows * obs_dim.max(act_dim)),
             q_policy: Vec::with_capacity(rows),
             q_planned: Vec::with_capacity(rows),
+            largest_gap: Vec::with_capacity(rows),
+            distance: Vec::with_capacity(rows),
         }
     }
 }
@@ -705,14 +764,38 @@ fn test_chunks<N: Networks, R: Rng>(
     }
     crate::nn::resize(&mut s.q_policy, rows);
     crate::nn::resize(&mut s.q_planned, rows);
+    let checking = || {
+        jobs.iter()
+            .zip(&s.jobs)
+            .filter(|(_, st)| st.phase == Phase::Checking)
+            .map(|(job, _)| job.config.guard)
+    };
+    let every_critic = checking().any(|g| g.every_critic);
+    let support = checking().any(|g| g.support_limit > 0.0);
     // `noise` holds the policy's actions here (a reused buffer).
-    nets.q_pair(
-        &s.obs,
-        &s.noise,
-        &s.actions,
-        &mut s.q_policy,
-        &mut s.q_planned,
-    );
+    if every_critic {
+        crate::nn::resize(&mut s.largest_gap, rows);
+        nets.q_pair_gap(
+            &s.obs,
+            &s.noise,
+            &s.actions,
+            &mut s.q_policy,
+            &mut s.q_planned,
+            &mut s.largest_gap,
+        );
+    } else {
+        nets.q_pair(
+            &s.obs,
+            &s.noise,
+            &s.actions,
+            &mut s.q_policy,
+            &mut s.q_planned,
+        );
+    }
+    if support {
+        crate::nn::resize(&mut s.distance, rows);
+        nets.policy_distance(&s.obs, &s.actions, &mut s.distance);
+    }
     let mut row = 0;
     for (i, (job, st)) in jobs.iter_mut().zip(s.jobs.iter_mut()).enumerate() {
         if st.phase != Phase::Checking {
@@ -741,8 +824,30 @@ fn test_chunks<N: Networks, R: Rng>(
                 fail(st, "critic", j);
                 break;
             }
+            let (guard, epsilon) = (job.config.guard, job.config.epsilon);
+            let largest_gap = if guard.every_critic {
+                s.largest_gap[base + m]
+            } else {
+                0.0
+            };
+            if !largest_gap.is_finite() {
+                fail(st, "critic", j);
+                break;
+            }
+            let distance = if guard.support_limit > 0.0 {
+                s.distance[base + m]
+            } else {
+                0.0
+            };
+            if !distance.is_finite() {
+                fail(st, "actor", j);
+                break;
+            }
             let state = &s.chunk_states[state_row * od..(state_row + 1) * od];
-            if q_planned + job.config.epsilon < q_policy {
+            if q_planned + epsilon < q_policy
+                || (guard.every_critic && largest_gap > epsilon)
+                || (guard.support_limit > 0.0 && distance > guard.support_limit)
+            {
                 st.broke_at = Some(j);
                 st.have_policy_action = true;
                 s.states[i * od..(i + 1) * od].copy_from_slice(state);

@@ -39,7 +39,7 @@ pub fn reference_replan<N: Networks, R: Rng>(
     let mut next = vec![0.0; obs_dim];
     let mut pi = vec![0.0; act_dim];
     let mut noise = vec![0.0; act_dim];
-    let (mut q_pi, mut q_a) = ([0.0], [0.0]);
+    let (mut q_pi, mut q_a, mut gap, mut distance) = ([0.0], [0.0], [0.0], [0.0]);
     let mut broke_at = None;
     // Lines 2-7: walk the old plan from the observed state while its actions stay good enough.
     for j in 0..old.len().min(config.max_horizon) {
@@ -48,12 +48,27 @@ pub fn reference_replan<N: Networks, R: Rng>(
         if !pi.iter().all(|v| v.is_finite()) {
             return failed("actor", j);
         }
-        nets.q_pair(&s, &pi, old.action(j), &mut q_pi, &mut q_a);
+        nets.q_pair_gap(&s, &pi, old.action(j), &mut q_pi, &mut q_a, &mut gap);
         if !q_pi[0].is_finite() || !q_a[0].is_finite() {
             return failed("critic", j);
         }
+        // The guard (off in the paper): any one critic's gap above eps, or an action the
+        // policy's Gaussian puts too far from its mean, also breaks the plan.
+        let guard = config.guard;
+        if guard.every_critic && !gap[0].is_finite() {
+            return failed("critic", j);
+        }
+        if guard.support_limit > 0.0 {
+            nets.policy_distance(&s, old.action(j), &mut distance);
+            if !distance[0].is_finite() {
+                return failed("actor", j);
+            }
+        }
         // Lines 4-5: Q(s, a) + eps < Q(s, pi(s)) breaks the plan here.
-        if q_a[0] + config.epsilon < q_pi[0] {
+        if q_a[0] + config.epsilon < q_pi[0]
+            || (guard.every_critic && gap[0] > config.epsilon)
+            || (guard.support_limit > 0.0 && distance[0] > guard.support_limit)
+        {
             broke_at = Some(j);
             break;
         }

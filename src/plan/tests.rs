@@ -16,11 +16,15 @@ struct ClosedForm {
     broken_model: bool,
     /// The model returns NaN from states whose first value exceeds this (a failure part-way).
     nan_above: f32,
+    /// A second critic, -(a - pi(s) - critic_shift)^2, aggregated with the first by min; 0: the
+    /// two critics agree.
+    critic_shift: f32,
 }
 
 impl ClosedForm {
     fn exact() -> Self {
         ClosedForm {
+            critic_shift: 0.0,
             model_bias: 0.0,
             broken_model: false,
             nan_above: f32::INFINITY,
@@ -28,6 +32,12 @@ impl ClosedForm {
     }
     fn mean_action(obs: &[f32]) -> f32 {
         (0.8 * obs[0] - 0.5 * obs[1]).tanh()
+    }
+    /// The two critics' values of action `a` at `obs`.
+    fn critics(&self, obs: &[f32], a: f32) -> [f32; 2] {
+        let mean = Self::mean_action(obs);
+        let shifted = mean + self.critic_shift;
+        [-(a - mean) * (a - mean), -(a - shifted) * (a - shifted)]
     }
 }
 
@@ -54,9 +64,32 @@ impl Networks for ClosedForm {
     }
     fn q_pair(&mut self, obs: &[f32], a: &[f32], b: &[f32], q_a: &mut [f32], q_b: &mut [f32]) {
         for k in 0..q_a.len() {
-            let mean = Self::mean_action(&obs[k * OBS..(k + 1) * OBS]);
-            q_a[k] = -(a[k] - mean) * (a[k] - mean);
-            q_b[k] = -(b[k] - mean) * (b[k] - mean);
+            let [a1, a2] = self.critics(&obs[k * OBS..(k + 1) * OBS], a[k]);
+            let [b1, b2] = self.critics(&obs[k * OBS..(k + 1) * OBS], b[k]);
+            q_a[k] = a1.min(a2);
+            q_b[k] = b1.min(b2);
+        }
+    }
+    fn q_pair_gap(
+        &mut self,
+        obs: &[f32],
+        a: &[f32],
+        b: &[f32],
+        q_a: &mut [f32],
+        q_b: &mut [f32],
+        largest_gap: &mut [f32],
+    ) {
+        self.q_pair(obs, a, b, q_a, q_b);
+        for k in 0..q_a.len() {
+            let [a1, a2] = self.critics(&obs[k * OBS..(k + 1) * OBS], a[k]);
+            let [b1, b2] = self.critics(&obs[k * OBS..(k + 1) * OBS], b[k]);
+            largest_gap[k] = (a1 - b1).max(a2 - b2);
+        }
+    }
+    fn policy_distance(&mut self, obs: &[f32], actions: &[f32], distance: &mut [f32]) {
+        for (k, d) in distance.iter_mut().enumerate() {
+            let o = &obs[k * OBS..(k + 1) * OBS];
+            *d = support_distance(actions[k], 0.8 * o[0] - 0.5 * o[1], 0.3);
         }
     }
     fn predict_next(&mut self, obs: &[f32], actions: &[f32], next_obs: &mut [f32]) {
@@ -152,6 +185,7 @@ fn huge_eps(growth: Growth, max_horizon: usize) -> ReplanConfig {
         growth,
         max_horizon,
         sampled: false,
+        guard: Guard::default(),
     }
 }
 
@@ -182,6 +216,7 @@ fn huge_eps_never_breaks_and_grows_by_k_minus_1_to_the_cap() {
         let cap = 10;
         let mut ep = Episode::new(
             ClosedForm {
+                critic_shift: 0.0,
                 model_bias: 0.5,
                 broken_model: false,
                 nan_above: f32::INFINITY,
@@ -209,6 +244,7 @@ fn fixed_mode_refills_to_n() {
     let n = 6;
     let mut ep = Episode::new(
         ClosedForm {
+            critic_shift: 0.0,
             model_bias: 0.3,
             broken_model: false,
             nan_above: f32::INFINITY,
@@ -235,6 +271,7 @@ fn a_planted_bad_action_breaks_exactly_at_its_index() {
         growth: Growth::Grow(2),
         max_horizon: 32,
         sampled: false,
+        guard: Guard::default(),
     };
     let state = [0.3f32, 0.2];
     // An old plan of the policy's own actions along the exact rollout, decided at step 4...
@@ -288,6 +325,110 @@ fn a_planted_bad_action_breaks_exactly_at_its_index() {
     }
 }
 
+/// The policy's own actions along the exact rollout from `state`, with action `planted`
+/// replaced by `replace(mean action there)`.
+fn plan_with(state: [f32; OBS], planted: usize, replace: impl Fn(f32) -> f32) -> Plan {
+    let mut old = Plan::with_capacity(OBS, ACT, 16);
+    let mut s = state;
+    for j in 0..8 {
+        let mean = ClosedForm::mean_action(&s);
+        let a = [if j == planted { replace(mean) } else { mean }];
+        let next = env_step(&s, &a);
+        old.push(&a, &next, 4);
+        s = next;
+    }
+    old
+}
+
+fn replan_alone(
+    nets: &mut ClosedForm,
+    config: ReplanConfig,
+    state: [f32; OBS],
+    old: &Plan,
+) -> ReplanOutcome {
+    let mut new = Plan::with_capacity(OBS, ACT, 40);
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let job = ReplanJob {
+        config,
+        state: &state,
+        step: 5,
+        old: old.tail(0),
+        new: &mut new,
+        rng: &mut rng,
+    };
+    let outcome = replan(nets, job, &mut ReplanScratch::new(OBS, ACT)).unwrap();
+    let mut expected = Plan::with_capacity(OBS, ACT, 40);
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let job = ReplanJob {
+        config,
+        state: &state,
+        step: 5,
+        old: old.tail(0),
+        new: &mut expected,
+        rng: &mut rng,
+    };
+    assert_eq!(reference::reference_replan(nets, job), Ok(outcome));
+    assert_eq!(new, expected);
+    outcome
+}
+
+#[test]
+fn the_support_limit_breaks_at_an_action_the_policy_would_not_take() {
+    let mut nets = ClosedForm::exact();
+    let state = [0.3f32, 0.2];
+    // The ClosedForm policy's Gaussian has std 0.3 before tanh: 2.5 std from its mean.
+    let old = plan_with(state, 3, |mean| (mean.atanh() + 2.5 * 0.3).tanh());
+    let config = |support_limit| ReplanConfig {
+        guard: Guard {
+            every_critic: false,
+            support_limit,
+        },
+        ..huge_eps(Growth::Grow(2), 32)
+    };
+    assert_eq!(
+        replan_alone(&mut nets, config(0.0), state, &old).broke_at,
+        None
+    );
+    assert_eq!(
+        replan_alone(&mut nets, config(3.0), state, &old).broke_at,
+        None
+    );
+    let outcome = replan_alone(&mut nets, config(2.0), state, &old);
+    assert_eq!((outcome.broke_at, outcome.kept), (Some(3), 3));
+    // The policy's own actions lie 0 std from its mean: even a tiny limit keeps them.
+    let own = plan_with(state, usize::MAX, |mean| mean);
+    assert_eq!(
+        replan_alone(&mut nets, config(1e-3), state, &own).broke_at,
+        None
+    );
+    assert_eq!(support_distance(1.0, 50.0, 0.3), 0.0);
+    assert!((support_distance(0.5, 0.5f32.atanh() - 0.6, 0.3) - 2.0).abs() < 1e-5);
+}
+
+#[test]
+fn every_critic_breaks_where_one_critic_objects_and_their_aggregate_does_not() {
+    // Critic 2 is centred 0.2 above the policy: for a = pi(s) + 0.1 critic 1's gap is 0.01 and
+    // critic 2's -0.03, and the aggregate min's is -0.03.
+    let mut nets = ClosedForm {
+        critic_shift: 0.2,
+        ..ClosedForm::exact()
+    };
+    let state = [0.3f32, 0.2];
+    let old = plan_with(state, 2, |mean| mean + 0.1);
+    let config = |every_critic| ReplanConfig {
+        epsilon: 0.005,
+        guard: Guard {
+            every_critic,
+            support_limit: 0.0,
+        },
+        ..ReplanConfig::default()
+    };
+    let paper = replan_alone(&mut nets, config(false), state, &old);
+    assert_eq!((paper.broke_at, paper.kept), (None, 8));
+    let guarded = replan_alone(&mut nets, config(true), state, &old);
+    assert_eq!((guarded.broke_at, guarded.kept), (Some(2), 2));
+}
+
 #[test]
 fn forecast_f_t_over_an_episode() {
     // Grow 2 that never breaks: a_t was decided at floor(t / 2), so f_t = floor((t + 1) / 2) + 1
@@ -304,6 +445,7 @@ fn forecast_f_t_over_an_episode() {
     // A model that is always wrong under eps = 0 breaks at the first action every step: f_t = 1.
     let mut breaking = Episode::new(
         ClosedForm {
+            critic_shift: 0.0,
             model_bias: 0.2,
             broken_model: false,
             nan_above: f32::INFINITY,
@@ -366,6 +508,7 @@ fn an_old_plan_longer_than_the_cap_is_truncated() {
 #[test]
 fn a_non_finite_model_is_an_error_not_a_plan() {
     let mut nets = ClosedForm {
+        critic_shift: 0.0,
         model_bias: 0.0,
         broken_model: true,
         nan_above: f32::INFINITY,
@@ -411,6 +554,7 @@ fn a_batch_gives_each_session_what_it_gets_alone() {
             growth: Growth::Fixed(9),
             max_horizon: 9,
             sampled: false,
+            guard: Guard::default(),
         },
     ];
     let states: Vec<[f32; OBS]> = (0..configs.len())
@@ -431,6 +575,7 @@ fn a_batch_gives_each_session_what_it_gets_alone() {
         })
         .collect();
     let mut nets = ClosedForm {
+        critic_shift: 0.0,
         model_bias: 0.01,
         broken_model: false,
         nan_above: f32::INFINITY,
@@ -505,8 +650,17 @@ fn chunked_batched_replan_matches_the_plain_algorithm() {
             },
             max_horizon: scenario.random_range(1..48),
             sampled: case % 2 == 1,
+            guard: Guard {
+                every_critic: case % 5 < 2,
+                support_limit: [0.0, 0.5, 2.0, 4.0][case / 5 % 4],
+            },
         };
         let mut nets = ClosedForm {
+            critic_shift: if case % 7 < 4 {
+                scenario.random_range(-0.3..0.3)
+            } else {
+                0.0
+            },
             model_bias: scenario.random_range(-0.02..0.02),
             broken_model: false,
             // Every fourth case: the model fails part-way through the rollout.

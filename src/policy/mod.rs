@@ -5,7 +5,7 @@ use std::sync::Arc;
 
 use crate::manifest::{Manifest, Normalization, ObsNormalization, QAggregation};
 use crate::nn::{Dense, Mlp, MlpScratch, resize};
-use crate::plan::{MAX_CHUNK, Networks};
+use crate::plan::{MAX_CHUNK, Networks, support_distance};
 
 /// SB3 clamps log_std to this range.
 pub(crate) const LOG_STD_MIN: f32 = -20.0;
@@ -181,6 +181,61 @@ impl Evaluator {
     pub(crate) fn policy(&self) -> &Arc<Policy> {
         &self.policy
     }
+
+    /// Aggregated critic values of (obs, a) and (obs, b), and where asked the largest gap one
+    /// critic sees, `max_c (Q_c(obs, a) - Q_c(obs, b))`.
+    fn q_values(
+        &mut self,
+        obs: &[f32],
+        a: &[f32],
+        b: &[f32],
+        q_a: &mut [f32],
+        q_b: &mut [f32],
+        mut largest_gap: Option<&mut [f32]>,
+    ) {
+        let (od, ad) = (self.policy.obs_dim(), self.policy.act_dim());
+        let n = obs.len() / od;
+        let obs = normalize(&self.obs_scale, obs, &mut self.normalized);
+        self.critic_input.clear();
+        for actions in [a, b] {
+            for k in 0..n {
+                self.critic_input
+                    .extend_from_slice(&obs[k * od..(k + 1) * od]);
+                self.critic_input
+                    .extend_from_slice(&actions[k * ad..(k + 1) * ad]);
+            }
+        }
+        let how = self.policy.manifest.q_aggregation;
+        for (c, (critic, scratch)) in self
+            .policy
+            .critics
+            .iter()
+            .zip(&mut self.critics)
+            .enumerate()
+        {
+            let q = critic.forward_rows(&self.critic_input, scratch);
+            for k in 0..n {
+                q_a[k] = aggregate(how, c, q_a[k], q[k]);
+                q_b[k] = aggregate(how, c, q_b[k], q[n + k]);
+            }
+            if let Some(gap) = largest_gap.as_deref_mut() {
+                for k in 0..n {
+                    let g = q[k] - q[n + k];
+                    gap[k] = if c == 0 || g > gap[k] || g.is_nan() {
+                        g
+                    } else {
+                        gap[k]
+                    };
+                }
+            }
+        }
+        if how == QAggregation::Mean {
+            let count = self.policy.critics.len() as f32;
+            q_a.iter_mut()
+                .chain(q_b.iter_mut())
+                .for_each(|q| *q /= count);
+        }
+    }
 }
 
 impl Networks for Evaluator {
@@ -215,37 +270,42 @@ impl Networks for Evaluator {
     }
 
     fn q_pair(&mut self, obs: &[f32], a: &[f32], b: &[f32], q_a: &mut [f32], q_b: &mut [f32]) {
-        let (od, ad) = (self.policy.obs_dim(), self.policy.act_dim());
-        let n = obs.len() / od;
+        self.q_values(obs, a, b, q_a, q_b, None);
+    }
+
+    fn q_pair_gap(
+        &mut self,
+        obs: &[f32],
+        a: &[f32],
+        b: &[f32],
+        q_a: &mut [f32],
+        q_b: &mut [f32],
+        largest_gap: &mut [f32],
+    ) {
+        self.q_values(obs, a, b, q_a, q_b, Some(largest_gap));
+    }
+
+    fn policy_distance(&mut self, obs: &[f32], actions: &[f32], distance: &mut [f32]) {
+        let actor = &self.policy.actor;
+        let n = obs.len() / self.policy.obs_dim();
+        let ad = self.policy.act_dim();
+        let Some(log_std_head) = &actor.log_std else {
+            distance[..n].fill(f32::NAN);
+            return;
+        };
         let obs = normalize(&self.obs_scale, obs, &mut self.normalized);
-        self.critic_input.clear();
-        for actions in [a, b] {
-            for k in 0..n {
-                self.critic_input
-                    .extend_from_slice(&obs[k * od..(k + 1) * od]);
-                self.critic_input
-                    .extend_from_slice(&actions[k * ad..(k + 1) * ad]);
-            }
-        }
-        let how = self.policy.manifest.q_aggregation;
-        for (c, (critic, scratch)) in self
-            .policy
-            .critics
-            .iter()
-            .zip(&mut self.critics)
-            .enumerate()
-        {
-            let q = critic.forward_rows(&self.critic_input, scratch);
-            for k in 0..n {
-                q_a[k] = aggregate(how, c, q_a[k], q[k]);
-                q_b[k] = aggregate(how, c, q_b[k], q[n + k]);
-            }
-        }
-        if how == QAggregation::Mean {
-            let count = self.policy.critics.len() as f32;
-            q_a.iter_mut()
-                .chain(q_b.iter_mut())
-                .for_each(|q| *q /= count);
+        let latent = actor.trunk.forward_rows(obs, &mut self.actor);
+        resize(&mut self.mu, n * ad);
+        actor.mu.forward_rows(latent, &mut self.mu);
+        resize(&mut self.log_std, n * ad);
+        log_std_head.forward_rows(latent, &mut self.log_std);
+        for (k, d) in distance[..n].iter_mut().enumerate() {
+            *d = (k * ad..(k + 1) * ad)
+                .map(|i| {
+                    let std = self.log_std[i].clamp(LOG_STD_MIN, LOG_STD_MAX).exp();
+                    support_distance(actions[i], self.mu[i], std)
+                })
+                .fold(0.0, |m: f32, v| if v > m || v.is_nan() { v } else { m });
         }
     }
 
@@ -443,6 +503,63 @@ mod tests {
             eval.predict_next(o, &a, &mut s_next);
             assert_eq!(s_next, next[k * 5..k * 5 + 5]);
         }
+    }
+
+    #[test]
+    fn the_guards_quantities_are_each_critics_and_the_gaussians() {
+        let policy = Arc::new(crate::testing::random_policy(
+            test_manifest("t", "d", 5, 2, &[16, 16], &[8]),
+            4,
+        ));
+        assert!(policy.critics.len() >= 2);
+        let mut eval = Evaluator::new(policy.clone());
+        let n = 7;
+        let obs: Vec<f32> = (0..n * 5).map(|i| (i as f32 * 0.9).sin()).collect();
+        let a: Vec<f32> = (0..n * 2).map(|i| (i as f32 * 0.4).cos() * 0.9).collect();
+        let b: Vec<f32> = (0..n * 2).map(|i| (i as f32 * 0.2).sin()).collect();
+        let (mut qa, mut qb, mut gap) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
+        eval.q_pair_gap(&obs, &a, &b, &mut qa, &mut qb, &mut gap);
+        let (mut pa, mut pb) = (vec![0.0; n], vec![0.0; n]);
+        eval.q_pair(&obs, &a, &b, &mut pa, &mut pb);
+        assert_eq!((&qa, &qb), (&pa, &pb));
+        let mut distance = vec![0.0; n];
+        eval.policy_distance(&obs, &b, &mut distance);
+        for k in 0..n {
+            let (o, ak, bk) = (&obs[k * 5..][..5], &a[k * 2..][..2], &b[k * 2..][..2]);
+            let each = |critic: &Mlp, act: &[f32]| {
+                let input: Vec<f32> = o.iter().chain(act).copied().collect();
+                critic.forward_rows(&input, &mut critic.scratch_for(1))[0]
+            };
+            let largest = policy
+                .critics
+                .iter()
+                .map(|c| each(c, ak) - each(c, bk))
+                .fold(f32::MIN, f32::max);
+            assert_eq!(gap[k], largest, "row {k}");
+            // The Gaussian's mean and std at o, from the actor's heads.
+            let mut trunk = policy.actor.trunk.scratch_for(1);
+            let latent = policy.actor.trunk.forward_rows(o, &mut trunk);
+            let (mut mu, mut log_std) = ([0.0f32; 2], [0.0f32; 2]);
+            policy.actor.mu.forward_rows(latent, &mut mu);
+            policy
+                .actor
+                .log_std
+                .as_ref()
+                .unwrap()
+                .forward_rows(latent, &mut log_std);
+            let expected = (0..2)
+                .map(|i| (bk[i].atanh() - mu[i]).abs() / log_std[i].exp())
+                .fold(0.0, f32::max);
+            assert!(
+                (distance[k] - expected).abs() <= 1e-4 * expected.max(1.0),
+                "row {k}"
+            );
+        }
+        // The policy's own mean action lies at distance 0.
+        let mut own = vec![0.0; n * 2];
+        eval.act(&obs, &vec![0.0; n * 2], &mut own);
+        eval.policy_distance(&obs, &own, &mut distance);
+        assert!(distance.iter().all(|&d| d < 1e-3), "{distance:?}");
     }
 
     #[test]

@@ -307,6 +307,7 @@ impl Trainer {
                 growth: Growth::default(),
                 max_horizon: options.max_horizon,
                 sampled: true,
+                ..ReplanConfig::default()
             };
             let rng = ChaCha8Rng::seed_from_u64(options.seed.wrapping_add(progress.step) ^ 0x91a7);
             Planner::new(config, od, ad, rng)

@@ -23,6 +23,7 @@ fn options(
         max_horizon,
         sampled: false,
         seed: 0,
+        guard: None,
     }
 }
 

@@ -114,6 +114,12 @@ struct Args {
     /// Plan cap of the sessions (1 with --epsilon 0: one-step policy serving).
     #[arg(long, default_value_t = 32)]
     max_horizon: u32,
+    /// Guard the sessions' plans with every critic (the session option guard.every_critic).
+    #[arg(long)]
+    every_critic: bool,
+    /// Guard the sessions' plans with a support limit (guard.support_limit) [default: none].
+    #[arg(long, value_name = "Z")]
+    support_limit: Option<f64>,
     /// Observations: a safetensors file with an `obs` array [N, obs_dim] (as written by
     /// `python -m prac_client.record`). Default: states visited by running the policy on its own
     /// model (the server's predicted observations, with noise), recorded before measuring.
@@ -268,6 +274,10 @@ fn session_options(args: &Args) -> proto::SessionOptions {
         max_horizon: args.max_horizon,
         sampled: false,
         seed: 0,
+        guard: (args.every_critic || args.support_limit.is_some()).then_some(proto::PlanGuard {
+            every_critic: args.every_critic,
+            support_limit: args.support_limit.unwrap_or(0.0),
+        }),
     }
 }
 

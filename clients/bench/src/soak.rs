@@ -161,6 +161,10 @@ fn options(rng: &mut ChaCha8Rng) -> proto::SessionOptions {
     proto::SessionOptions {
         tolerance: Some(Tolerance::Epsilon(rng.random_range(0.0..2.0))),
         max_horizon: rng.random_range(1..=64),
+        guard: rng.random_bool(0.5).then(|| proto::PlanGuard {
+            every_critic: rng.random_bool(0.5),
+            support_limit: rng.random_range(0.0..4.0),
+        }),
         ..Default::default()
     }
 }

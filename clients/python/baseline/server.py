@@ -37,6 +37,8 @@ from prac_client._proto.prac.v1 import prac_pb2_grpc as pb_grpc
 F32 = np.float32
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
 DEFAULT_MAX_HORIZON = 32
+# Actions and means are clamped here before atanh, so actions at the bounds compare finitely.
+SQUASHED_LIMIT = F32(1.0) - np.finfo(F32).eps
 CHUNK = 8  # old actions checked per round: one batched actor and critic pass for all of them
 
 
@@ -102,6 +104,8 @@ class Policy:
         self.trunk = Mlp(tensors, "actor.latent_pi", actor_layers, m["actor"]["activation"], True)
         self.mu_w = np.ascontiguousarray(tensors["actor.mu.weight"].T, dtype=F32)
         self.mu_b = tensors["actor.mu.bias"].astype(F32)
+        self.log_std_w = np.ascontiguousarray(tensors["actor.log_std.weight"].T, dtype=F32) if "actor.log_std.weight" in tensors else None
+        self.log_std_b = tensors["actor.log_std.bias"].astype(F32) if "actor.log_std.bias" in tensors else None
         critic_layers = len(m["critic"]["hidden"]) + 1
         critic_norm = bool(m["critic"].get("layer_norm", False))
         self.critics = [
@@ -126,9 +130,25 @@ class Policy:
         return np.tanh(self.trunk(s.copy()) @ self.mu_w + self.mu_b)
 
     def q(self, s: np.ndarray, a: np.ndarray) -> np.ndarray:
+        return self.aggregate(self.q_each(s, a))
+
+    def q_each(self, s: np.ndarray, a: np.ndarray) -> list[np.ndarray]:
         x = np.concatenate([s, a], axis=1)
-        qs = [c(x.copy())[:, 0] for c in self.critics]
+        return [c(x.copy())[:, 0] for c in self.critics]
+
+    def aggregate(self, qs: list[np.ndarray]) -> np.ndarray:
         return np.mean(qs, axis=0, dtype=F32) if self.mean_q else np.minimum.reduce(qs)
+
+    def distance(self, s: np.ndarray, a: np.ndarray) -> np.ndarray:
+        """Per row, how many of the policy's standard deviations a lies from its Gaussian's mean
+        before tanh (the guard's support_limit test), the largest over the action's entries."""
+        assert self.log_std_w is not None and self.log_std_b is not None
+        latent = self.trunk(s.copy())
+        mu = latent @ self.mu_w + self.mu_b
+        std = np.exp(np.clip(latent @ self.log_std_w + self.log_std_b, F32(LOG_STD_MIN), F32(LOG_STD_MAX)))
+        pre = np.arctanh(np.clip(a, -SQUASHED_LIMIT, SQUASHED_LIMIT))
+        limit = np.arctanh(SQUASHED_LIMIT)
+        return (np.abs(pre - np.clip(mu, -limit, limit)) / std).max(axis=1)
 
     def predict(self, s: np.ndarray, a: np.ndarray) -> np.ndarray:
         n = self.norm
@@ -151,6 +171,9 @@ class Session:
     grow: int | None
     fixed: int | None
     max_horizon: int
+    # The guard (all off: the paper's test).
+    every_critic: bool = False
+    support_limit: float = 0.0
     # The committed plan: squashed actions [n, act], predicted observations [n, obs], decided_at.
     actions: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), F32))
     predicted: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), F32))
@@ -205,12 +228,21 @@ def replan_batch(policy: Policy, jobs: list[tuple[Session, np.ndarray, bool]]) -
         states = np.stack(rows)
         old_a = np.stack([olds[k][0][kept[k] + c] for k, c in zip(owner, depth)])
         pi = policy.act(states)
-        both = policy.q(np.concatenate([states, states]), np.concatenate([pi, old_a]))
+        each = policy.q_each(np.concatenate([states, states]), np.concatenate([pi, old_a]))
+        both = policy.aggregate(each)
         q_pi, q_a = both[: len(rows)], both[len(rows) :]
+        # The guard: the largest one-critic gap, and the distance from the policy's Gaussian.
+        gap = np.maximum.reduce([q[: len(rows)] - q[len(rows) :] for q in each])
+        support = any(jobs[k][0].support_limit > 0 for k in checking)
+        distance = policy.distance(states, old_a) if support else None
         first_fail: dict[int, int] = {}
         for r, (k, c) in enumerate(zip(owner, depth)):
-            eps = F32(jobs[k][0].epsilon)
-            if k not in first_fail and q_a[r] + eps < q_pi[r]:
+            session = jobs[k][0]
+            eps = F32(session.epsilon)
+            breaks = q_a[r] + eps < q_pi[r] or (session.every_critic and gap[r] > eps)
+            if distance is not None and session.support_limit > 0:
+                breaks = breaks or bool(distance[r] > F32(session.support_limit))
+            if k not in first_fail and breaks:
                 first_fail[k] = c
                 pi_at_break[k] = pi[r]
         still = []
@@ -369,7 +401,11 @@ class Service(pb_grpc.PracServicer):  # type: ignore[misc]
         grow = o.grow if growth == "grow" else (None if growth == "fixed" else 2)
         fixed = o.fixed if growth == "fixed" else None
         horizon = o.max_horizon or (max(fixed, DEFAULT_MAX_HORIZON) if fixed else DEFAULT_MAX_HORIZON)
-        session = Session(request.policy, p, float(F32(eps)), grow, fixed, horizon)
+        every_critic = o.HasField("guard") and o.guard.every_critic
+        support_limit = o.guard.support_limit if o.HasField("guard") else 0.0
+        if support_limit > 0 and p.log_std_w is None:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "guard.support_limit needs a Gaussian actor")
+        session = Session(request.policy, p, float(F32(eps)), grow, fixed, horizon, every_critic, float(F32(support_limit)))
         sid = secrets.token_hex(16)
         self.sessions[sid] = session
         resolved = pb.ResolvedOptions(
@@ -377,6 +413,7 @@ class Service(pb_grpc.PracServicer):  # type: ignore[misc]
             growth_mode="fixed" if fixed else "grow",
             growth=fixed or grow or 2,
             max_horizon=horizon,
+            guard=pb.PlanGuard(every_critic=every_critic, support_limit=session.support_limit),
         )
         return pb.OpenSessionResponse(session_id=sid, policy=self.info(request.policy), options=resolved)
 

@@ -55,12 +55,20 @@ def answers_alike(bundles: pathlib.Path, server: Server) -> np.ndarray:
         assert line.startswith("listening on "), line
         address = line.removeprefix("listening on ").strip()
         rng = np.random.default_rng(5)
-        breaks = 0
+        breaks = guarded_breaks = 0
         forecasts: list[np.ndarray] = []
         with Client(server.address, timeout=10) as ours, Client(address, timeout=10) as theirs:
-            for epsilon, growth in ((1e-4, "grow 2"), (1e-3, "fixed 6"), (0.0, "grow 1")):
-                a = ours.session("pendulum", epsilon=epsilon, growth=growth, max_horizon=12)
-                b = theirs.session("pendulum", epsilon=epsilon, growth=growth, max_horizon=12)
+            # The last two sessions guard their plans (prac.v1.PlanGuard).
+            for epsilon, growth, every_critic, support_limit in (
+                (1e-4, "grow 2", False, None),
+                (1e-3, "fixed 6", False, None),
+                (0.0, "grow 1", False, None),
+                (1e-4, "fixed 6", True, None),
+                (1e-4, "grow 2", True, 0.5),
+            ):
+                guard = {"every_critic": every_critic, "support_limit": support_limit}
+                a = ours.session("pendulum", epsilon=epsilon, growth=growth, max_horizon=12, **guard)
+                b = theirs.session("pendulum", epsilon=epsilon, growth=growth, max_horizon=12, **guard)
                 obs = rng.uniform(-1, 1, 3)
                 for t in range(120):
                     ra, rb = a.step(obs, new_episode=t % 40 == 0), b.step(obs, new_episode=t % 40 == 0)
@@ -70,10 +78,12 @@ def answers_alike(bundles: pathlib.Path, server: Server) -> np.ndarray:
                     forecasts.extend(np.asarray(ra.forecast_observations).reshape(-1, 3))
                     assert (ra.kept, ra.broke_at, ra.f_t, ra.step, ra.episode) == (rb.kept, rb.broke_at, rb.f_t, rb.step, rb.episode), t
                     breaks += ra.broke_at is not None
+                    guarded_breaks += ra.broke_at is not None and every_critic
                     # Near the plan's predictions, with noise: some plans hold, some break.
                     obs = np.clip(ra.forecast_observations[0] + rng.uniform(-0.3, 0.3, 3), -3, 3)
                 assert a.close() == b.close() == 120
         assert breaks > 0
+        assert guarded_breaks > 0, "no guarded plan broke"
         return np.array(forecasts)
     finally:
         baseline.terminate()

@@ -56,6 +56,14 @@ struct PlanArgs {
     /// Longest plan, the action executed now included [server default: 32, or N with --fixed N].
     #[arg(long, value_name = "N")]
     max_horizon: Option<u32>,
+    /// Guard the plans: any one critic rating a kept action more than eps below pi(s) also
+    /// breaks the plan (the session option guard.every_critic).
+    #[arg(long)]
+    every_critic: bool,
+    /// Guard the plans: an action further than Z of the policy's standard deviations from its
+    /// mean also breaks the plan (guard.support_limit) [default: no limit].
+    #[arg(long, value_name = "Z")]
+    support_limit: Option<f64>,
 }
 
 impl PlanArgs {
@@ -74,6 +82,8 @@ impl PlanArgs {
                 .map(Growth::Grow)
                 .or(self.fixed.map(Growth::Fixed)),
             max_horizon: self.max_horizon.unwrap_or(0),
+            every_critic: self.every_critic,
+            support_limit: self.support_limit.unwrap_or(0.0),
         })
     }
 }

@@ -27,6 +27,9 @@ pub enum Tol {
 pub struct PlanShape {
     pub growth: Option<Growth>,
     pub max_horizon: u32,
+    /// The session option guard (off: the paper's test alone).
+    pub every_critic: bool,
+    pub support_limit: f64,
 }
 
 impl PlanShape {
@@ -37,10 +40,22 @@ impl PlanShape {
             Growth::Fixed(n) => format!("fixed {n}"),
         });
         let cap = (self.max_horizon > 0).then(|| format!("max horizon {}", self.max_horizon));
-        match (growth, cap) {
-            (None, None) => None,
-            (g, c) => Some(g.into_iter().chain(c).collect::<Vec<_>>().join(", ")),
-        }
+        let critics = self.every_critic.then(|| "every critic".to_string());
+        let support =
+            (self.support_limit > 0.0).then(|| format!("support limit {}", self.support_limit));
+        let parts: Vec<String> = [growth, cap, critics, support]
+            .into_iter()
+            .flatten()
+            .collect();
+        (!parts.is_empty()).then(|| parts.join(", "))
+    }
+
+    /// The session option guard, where one is asked for.
+    pub fn guard(&self) -> Option<proto::PlanGuard> {
+        (self.every_critic || self.support_limit > 0.0).then_some(proto::PlanGuard {
+            every_critic: self.every_critic,
+            support_limit: self.support_limit,
+        })
     }
 }
 
@@ -125,6 +140,7 @@ pub async fn play_episode(
         growth: plan.growth,
         max_horizon: plan.max_horizon,
         seed,
+        guard: plan.guard(),
         ..Default::default()
     };
     let session = client

@@ -1,6 +1,6 @@
 //! A session's options, resolved against the policy and the server's limits.
 
-use crate::plan::{DEFAULT_MAX_HORIZON, Growth, ReplanConfig};
+use crate::plan::{DEFAULT_MAX_HORIZON, Growth, Guard, ReplanConfig};
 use crate::policy::Policy;
 use crate::proto;
 
@@ -93,9 +93,14 @@ impl SessionSettings {
                 policy.manifest.actor.kind.as_str()
             ));
         }
+        let guard = match &options.guard {
+            None => Guard::default(),
+            Some(g) => resolve_guard(g, policy)?,
+        };
         Ok(SessionSettings {
             replan: ReplanConfig {
                 epsilon: epsilon as f32,
+                guard,
                 growth,
                 max_horizon,
                 sampled: options.sampled,
@@ -116,6 +121,31 @@ impl SessionSettings {
             max_horizon: self.replan.max_horizon as u32,
             sampled: self.replan.sampled,
             seed: self.seed,
+            guard: Some(proto::PlanGuard {
+                every_critic: self.replan.guard.every_critic,
+                support_limit: self.replan.guard.support_limit as f64,
+            }),
         }
     }
+}
+
+fn resolve_guard(guard: &proto::PlanGuard, policy: &Policy) -> Result<Guard, String> {
+    let limit = guard.support_limit;
+    if !(limit.is_finite() && limit >= 0.0 && limit <= f32::MAX as f64) {
+        return Err(format!(
+            "guard.support_limit is {limit}; expected a finite value >= 0 (0: no limit)"
+        ));
+    }
+    if limit > 0.0 && !policy.actor.samples() {
+        return Err(format!(
+            "guard.support_limit measures actions against the policy's Gaussian, and bundle \
+             '{}' has a {} actor, which has none; leave support_limit at 0",
+            policy.manifest.name,
+            policy.manifest.actor.kind.as_str()
+        ));
+    }
+    Ok(Guard {
+        every_critic: guard.every_critic,
+        support_limit: limit as f32,
+    })
 }

@@ -211,3 +211,56 @@ fn options_resolve_as_the_proto_says() {
     );
     assert!(SessionSettings::resolve(None, &deterministic, 256).is_ok());
 }
+
+#[test]
+fn a_guard_resolves_as_the_proto_says() {
+    let policy = policy();
+    let with_guard = |guard: Option<proto::PlanGuard>| proto::SessionOptions {
+        guard,
+        ..Default::default()
+    };
+    let resolve = |options: &proto::SessionOptions, policy: &Policy| {
+        SessionSettings::resolve(Some(options), policy, 256)
+    };
+    // Unset or empty: the paper's test, and the resolved options say so.
+    for options in [with_guard(None), with_guard(Some(Default::default()))] {
+        let settings = resolve(&options, &policy).unwrap();
+        assert!(settings.replan.guard.is_off());
+        assert_eq!(settings.to_proto().guard, Some(proto::PlanGuard::default()));
+    }
+    let guarded = with_guard(Some(proto::PlanGuard {
+        every_critic: true,
+        support_limit: 3.5,
+    }));
+    let settings = resolve(&guarded, &policy).unwrap();
+    assert_eq!(
+        settings.replan.guard,
+        crate::plan::Guard {
+            every_critic: true,
+            support_limit: 3.5
+        }
+    );
+    assert_eq!(settings.to_proto().guard, guarded.guard);
+    for bad in [-1.0, f64::NAN, f64::INFINITY, 1e300] {
+        let options = with_guard(Some(proto::PlanGuard {
+            every_critic: false,
+            support_limit: bad,
+        }));
+        let e = resolve(&options, &policy).unwrap_err();
+        assert!(e.contains("guard.support_limit is"), "{bad}: {e}");
+    }
+    // The support limit measures against the policy's Gaussian; every_critic needs none.
+    let mut deterministic = (*policy).clone();
+    deterministic.manifest.actor.kind = crate::manifest::ActorKind::Deterministic;
+    deterministic.actor.log_std = None;
+    let e = resolve(&guarded, &deterministic).unwrap_err();
+    assert!(
+        e.contains("has a deterministic actor") && e.contains("support_limit at 0"),
+        "{e}"
+    );
+    let critics_only = with_guard(Some(proto::PlanGuard {
+        every_critic: true,
+        support_limit: 0.0,
+    }));
+    assert!(resolve(&critics_only, &deterministic).is_ok());
+}

@@ -73,6 +73,8 @@ class Client(_core.ClientBase):
         max_horizon: int | None = None,
         seed: int | None = None,
         sampled: bool | None = None,
+        every_critic: bool = False,
+        support_limit: float | None = None,
     ) -> Session:
         """Opens a session (close it, or use it as a context manager). A seed means sampled
         actions unless sampled=False."""
@@ -84,6 +86,8 @@ class Client(_core.ClientBase):
             max_horizon=max_horizon,
             seed=seed,
             sampled=sampled,
+            every_critic=every_critic,
+            support_limit=support_limit,
         )
         return Session(self, self._call(self._stub.OpenSession, request), policy)
 

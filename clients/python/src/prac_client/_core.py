@@ -59,6 +59,8 @@ def open_request(
     max_horizon: int | None,
     seed: int | None,
     sampled: bool | None,
+    every_critic: bool = False,
+    support_limit: float | None = None,
 ) -> pb.OpenSessionRequest:
     """OpenSession's request; invalid options are a ValueError before any call."""
     options = session_options(
@@ -68,6 +70,8 @@ def open_request(
         max_horizon=max_horizon,
         seed=seed,
         sampled=sampled,
+        every_critic=every_critic,
+        support_limit=support_limit,
     )
     return pb.OpenSessionRequest(policy=policy, options=options)
 

@@ -64,6 +64,8 @@ class Client(_core.ClientBase):
         max_horizon: int | None = None,
         seed: int | None = None,
         sampled: bool | None = None,
+        every_critic: bool = False,
+        support_limit: float | None = None,
     ) -> _Opening:
         """`await client.session(...)` or `async with client.session(...) as session`."""
         request = _core.open_request(
@@ -74,6 +76,8 @@ class Client(_core.ClientBase):
             max_horizon=max_horizon,
             seed=seed,
             sampled=sampled,
+            every_critic=every_critic,
+            support_limit=support_limit,
         )
         return _Opening(self, request)
 

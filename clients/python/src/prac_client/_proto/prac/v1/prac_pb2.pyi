@@ -51,7 +51,7 @@ class ValueScale(_message.Message):
     def __init__(self, v_pi: _Optional[float] = ..., v_rand: _Optional[float] = ...) -> None: ...
 
 class SessionOptions(_message.Message):
-    __slots__ = ("epsilon", "epsilon_coef", "grow", "fixed", "max_horizon", "sampled", "seed")
+    __slots__ = ("epsilon", "epsilon_coef", "grow", "fixed", "max_horizon", "sampled", "seed", "guard")
     EPSILON_FIELD_NUMBER: _ClassVar[int]
     EPSILON_COEF_FIELD_NUMBER: _ClassVar[int]
     GROW_FIELD_NUMBER: _ClassVar[int]
@@ -59,6 +59,7 @@ class SessionOptions(_message.Message):
     MAX_HORIZON_FIELD_NUMBER: _ClassVar[int]
     SAMPLED_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
+    GUARD_FIELD_NUMBER: _ClassVar[int]
     epsilon: float
     epsilon_coef: float
     grow: int
@@ -66,7 +67,16 @@ class SessionOptions(_message.Message):
     max_horizon: int
     sampled: bool
     seed: int
-    def __init__(self, epsilon: _Optional[float] = ..., epsilon_coef: _Optional[float] = ..., grow: _Optional[int] = ..., fixed: _Optional[int] = ..., max_horizon: _Optional[int] = ..., sampled: _Optional[bool] = ..., seed: _Optional[int] = ...) -> None: ...
+    guard: PlanGuard
+    def __init__(self, epsilon: _Optional[float] = ..., epsilon_coef: _Optional[float] = ..., grow: _Optional[int] = ..., fixed: _Optional[int] = ..., max_horizon: _Optional[int] = ..., sampled: _Optional[bool] = ..., seed: _Optional[int] = ..., guard: _Optional[_Union[PlanGuard, _Mapping]] = ...) -> None: ...
+
+class PlanGuard(_message.Message):
+    __slots__ = ("every_critic", "support_limit")
+    EVERY_CRITIC_FIELD_NUMBER: _ClassVar[int]
+    SUPPORT_LIMIT_FIELD_NUMBER: _ClassVar[int]
+    every_critic: bool
+    support_limit: float
+    def __init__(self, every_critic: _Optional[bool] = ..., support_limit: _Optional[float] = ...) -> None: ...
 
 class OpenSessionRequest(_message.Message):
     __slots__ = ("policy", "options", "resume")
@@ -91,20 +101,22 @@ class OpenSessionResponse(_message.Message):
     def __init__(self, session_id: _Optional[str] = ..., policy: _Optional[_Union[PolicyInfo, _Mapping]] = ..., options: _Optional[_Union[ResolvedOptions, _Mapping]] = ..., resumed_actions: _Optional[int] = ...) -> None: ...
 
 class ResolvedOptions(_message.Message):
-    __slots__ = ("epsilon", "growth_mode", "growth", "max_horizon", "sampled", "seed")
+    __slots__ = ("epsilon", "growth_mode", "growth", "max_horizon", "sampled", "seed", "guard")
     EPSILON_FIELD_NUMBER: _ClassVar[int]
     GROWTH_MODE_FIELD_NUMBER: _ClassVar[int]
     GROWTH_FIELD_NUMBER: _ClassVar[int]
     MAX_HORIZON_FIELD_NUMBER: _ClassVar[int]
     SAMPLED_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
+    GUARD_FIELD_NUMBER: _ClassVar[int]
     epsilon: float
     growth_mode: str
     growth: int
     max_horizon: int
     sampled: bool
     seed: int
-    def __init__(self, epsilon: _Optional[float] = ..., growth_mode: _Optional[str] = ..., growth: _Optional[int] = ..., max_horizon: _Optional[int] = ..., sampled: _Optional[bool] = ..., seed: _Optional[int] = ...) -> None: ...
+    guard: PlanGuard
+    def __init__(self, epsilon: _Optional[float] = ..., growth_mode: _Optional[str] = ..., growth: _Optional[int] = ..., max_horizon: _Optional[int] = ..., sampled: _Optional[bool] = ..., seed: _Optional[int] = ..., guard: _Optional[_Union[PlanGuard, _Mapping]] = ...) -> None: ...
 
 class CloseSessionRequest(_message.Message):
     __slots__ = ("session_id",)
