@@ -9,7 +9,7 @@ use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 use std::sync::Arc;
 
-use prac::plan::{ReplanConfig, ReplanScratch};
+use prac::plan::{Guard, ReplanConfig, ReplanScratch};
 use prac::policy::Evaluator;
 use prac::testing::hopper_sized_manifest;
 use prac::testing::serve::{Arrival, Session, SessionSettings, StepInput};
@@ -75,17 +75,24 @@ fn steps_after_the_first_do_not_allocate() {
         clip_obs: 10.0,
         epsilon: 1e-8,
     });
-    for (manifest, epsilon, sampled) in [
-        (&plain, 0.0, false),
-        (&plain, 0.05, true),
-        (&plain, 1e9, false),
-        (&normalising, 0.05, false),
+    let guarded = Guard {
+        every_critic: true,
+        support_limit: 3.0,
+    };
+    for (manifest, epsilon, sampled, guard) in [
+        (&plain, 0.0, false, Guard::default()),
+        (&plain, 0.05, true, Guard::default()),
+        (&plain, 1e9, false, Guard::default()),
+        (&normalising, 0.05, false, Guard::default()),
+        (&plain, 0.05, false, guarded),
+        (&plain, 1e9, true, guarded),
     ] {
         let policy = Arc::new(prac::testing::random_policy(manifest.clone(), 3));
         let settings = SessionSettings {
             replan: ReplanConfig {
                 epsilon,
                 sampled,
+                guard,
                 ..ReplanConfig::default()
             },
             seed: 1,
@@ -118,7 +125,7 @@ fn steps_after_the_first_do_not_allocate() {
         assert_eq!(
             take(&ALLOCATIONS),
             0,
-            "eps {epsilon} sampled {sampled} normalising {}",
+            "eps {epsilon} sampled {sampled} normalising {} guard {guard:?}",
             manifest.obs_normalization.is_some()
         );
     }

@@ -790,9 +790,17 @@ async fn run_sessions(
     for k in 0..sessions {
         let mut client = server.client().await;
         tasks.push(tokio::spawn(async move {
+            // Every other session guards its plans: batches mix guarded and unguarded jobs.
+            let guard = (k % 2 == 1).then_some(proto::PlanGuard {
+                every_critic: k % 4 == 1,
+                support_limit: 1.0,
+            });
             let session = open(
                 &mut client,
-                options(Some(Tolerance::EpsilonCoef(0.0002)), None, 12),
+                proto::SessionOptions {
+                    guard,
+                    ..options(Some(Tolerance::EpsilonCoef(0.0002)), None, 12)
+                },
             )
             .await;
             let mut obs = vec![0.1 * k as f32, -0.2, 0.3];
