@@ -447,6 +447,20 @@ async fn every_error_status_with_a_clear_message() {
         ),
         (
             open_status(
+                "toy",
+                proto::SessionOptions {
+                    guard: Some(proto::PlanGuard {
+                        every_critic: true,
+                        support_limit: -2.0,
+                    }),
+                    ..options(None, None, 0)
+                },
+            ),
+            Code::InvalidArgument,
+            &["guard.support_limit is -2", "finite value >= 0"],
+        ),
+        (
+            open_status(
                 "unscaled",
                 options(Some(Tolerance::EpsilonCoef(0.01)), None, 0),
             ),
