@@ -8,6 +8,7 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     prac::serve::init_logging(config.log_format);
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
+        .on_thread_start(prac::serve::handlers_do_not_preempt)
         .build()?;
     runtime.block_on(prac::serve::run(config))
 }

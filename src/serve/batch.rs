@@ -12,19 +12,22 @@
 //! ([`Activity`]): with several of them (each sends its next step once answered, closed loop, or
 //! on its control clock), it waits for their steps, up to [`COMPANY_WAIT`], before replanning, so
 //! that a core whose steps arrive one by one still replans them together instead of one at a
-//! time. Steps too cheap to be worth a hand-off ([`CHEAP_STEP`]) stay in their handlers.
+//! time. While it waits it sleeps until the last expected step is queued ([`Doorbell`]), not
+//! woken by each step on the way. Steps too cheap to be worth a hand-off ([`CHEAP_STEP`]) stay in
+//! their handlers.
 
 use std::collections::HashMap;
-use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering, fence};
+use std::sync::{Arc, OnceLock};
+use std::thread::Thread;
 use std::time::{Duration, Instant};
 
-use crossbeam_channel::{Receiver, Sender, TrySendError};
+use crossbeam_channel::{Receiver, Sender, TryRecvError, TrySendError};
 use tokio::sync::oneshot;
 use tonic::Status;
 
 use super::arrival::Arrival;
-use super::session::{Session, SessionSlot, StepInput, Taken, apply_steps};
+use super::session::{Session, SessionSlot, StepInput, apply_steps};
 use super::workspace::{Workspace, Workspaces};
 use crate::policy::Policy;
 use crate::proto;
@@ -32,6 +35,9 @@ use crate::proto;
 /// How long a worker waits for the steps of the sessions that stepped lately, when no batch window
 /// is set: a closed-loop client answered in one batch sends its next steps within about this.
 const COMPANY_WAIT: Duration = Duration::from_micros(1_000);
+
+/// How often an idle worker looks whether the server has stopped (its queue disconnected).
+const IDLE_RECHECK: Duration = Duration::from_millis(100);
 
 /// A step whose replan took less than this (a moving average over the steps replanned in handlers
 /// and, per step, in batches) costs less than the hand-off to a worker thread and the wait for
@@ -107,6 +113,46 @@ impl Activity {
     }
 }
 
+/// How a worker waiting for company is woken: once the steps it still expects are all queued (or
+/// at its deadline), instead of by every step on the way. On a busy core each wake-up is a thread
+/// switch away from the request handlers that are reading the very steps it waits for.
+#[derive(Default)]
+struct Doorbell {
+    /// Steps the worker still expects while it sleeps for company; 0 when it is not sleeping so.
+    wanted: AtomicUsize,
+    worker: OnceLock<Thread>,
+}
+
+impl Doorbell {
+    /// After a step was queued: wakes the worker if the queue now holds all it waits for.
+    fn queued(&self, queue_len: impl FnOnce() -> usize) {
+        // Pairs with the fence in `sleep`: either this sees the worker's wish or the worker
+        // sees this step in the queue.
+        fence(Ordering::SeqCst);
+        let wanted = self.wanted.load(Ordering::Relaxed);
+        if wanted > 0
+            && queue_len() >= wanted
+            && let Some(worker) = self.worker.get()
+        {
+            worker.unpark();
+        }
+    }
+
+    /// Sleeps until `wanted` more steps are queued (as `queue_len` counts them) or `deadline`.
+    /// May return sooner (a stale wake-up); the caller takes what is queued and decides.
+    fn sleep(&self, wanted: usize, queue_len: impl FnOnce() -> usize, deadline: Instant) {
+        self.wanted.store(wanted, Ordering::Relaxed);
+        fence(Ordering::SeqCst);
+        if queue_len() < wanted {
+            let now = Instant::now();
+            if now < deadline {
+                std::thread::park_timeout(deadline - now);
+            }
+        }
+        self.wanted.store(0, Ordering::Relaxed);
+    }
+}
+
 /// Settings of the batch workers.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(crate) struct BatchConfig {
@@ -143,6 +189,8 @@ pub(super) struct Batcher {
     inline_when_alone: bool,
     /// Per worker, its sessions that stepped lately.
     activity: Vec<Arc<Activity>>,
+    /// Per worker, how a step wakes it when it waits for company.
+    doorbells: Vec<Arc<Doorbell>>,
     /// Moving average of a step's replan, in nanoseconds ([`CHEAP_STEP`]).
     step_cost: Arc<StepCost>,
 }
@@ -188,6 +236,7 @@ impl Batcher {
         let per_worker = config.queue.div_ceil(workers).max(1);
         let mut queues = Vec::with_capacity(workers);
         let mut activity = Vec::with_capacity(workers);
+        let mut doorbells = Vec::with_capacity(workers);
         let step_cost = Arc::new(StepCost::default());
         for i in 0..workers {
             let (queue, receiver) = crossbeam_channel::bounded(per_worker);
@@ -195,10 +244,13 @@ impl Batcher {
             let sessions = Arc::new(Activity::new());
             activity.push(sessions.clone());
             let cost = step_cost.clone();
-            std::thread::Builder::new()
+            let doorbell = Arc::new(Doorbell::default());
+            doorbells.push(doorbell.clone());
+            let worker = std::thread::Builder::new()
                 .name(format!("prac-batch-{i}"))
-                .spawn(move || Worker::new(config, sessions, cost).run(&receiver))
+                .spawn(move || Worker::new(config, sessions, cost, doorbell).run(&receiver))
                 .expect("spawning a batch worker thread");
+            let _ = doorbells[i].worker.set(worker.thread().clone());
         }
         Batcher {
             queues,
@@ -206,6 +258,7 @@ impl Batcher {
             waiting: Arc::default(),
             inline_when_alone: config.window.is_zero(),
             activity,
+            doorbells,
             step_cost,
         }
     }
@@ -259,8 +312,9 @@ impl Batcher {
             arrival,
             reply,
         };
-        match self.queues[worker].try_send(work) {
-            Ok(()) => {}
+        let queue = &self.queues[worker];
+        match queue.try_send(work) {
+            Ok(()) => self.doorbells[worker].queued(|| queue.len()),
             Err(TrySendError::Full(_)) => {
                 return Err(Status::resource_exhausted(format!(
                     "overloaded: {} steps are already queued for this session's batch worker; \
@@ -298,22 +352,41 @@ struct Worker {
     workspaces: Workspaces,
     activity: Arc<Activity>,
     step_cost: Arc<StepCost>,
+    doorbell: Arc<Doorbell>,
 }
 
 impl Worker {
-    fn new(config: BatchConfig, activity: Arc<Activity>, step_cost: Arc<StepCost>) -> Worker {
+    fn new(
+        config: BatchConfig,
+        activity: Arc<Activity>,
+        step_cost: Arc<StepCost>,
+        doorbell: Arc<Doorbell>,
+    ) -> Worker {
         Worker {
             config,
             workspaces: Workspaces::new(config.max_batch, 0),
             activity,
             step_cost,
+            doorbell,
         }
     }
 
     fn run(mut self, receiver: &Receiver<Work>) {
         let mut batch = Vec::with_capacity(self.config.max_batch);
         let mut deferred = Vec::new();
-        while let Ok(first) = receiver.recv() {
+        loop {
+            // Idle, it sleeps on its doorbell too: a channel's blocking receive spins and yields
+            // to the very handlers that are queueing steps, a thread switch each time.
+            let first = match receiver.try_recv() {
+                Ok(work) => work,
+                Err(TryRecvError::Empty) => {
+                    self.doorbell
+                        .sleep(1, || receiver.len(), Instant::now() + IDLE_RECHECK);
+                    continue;
+                }
+                // Every Batcher is gone: the server stopped.
+                Err(TryRecvError::Disconnected) => return,
+            };
             batch.push(first);
             // Without a window, the steps to expect: one from each session that stepped lately,
             // for at most COMPANY_WAIT. A window is waited out whatever the company.
@@ -329,16 +402,18 @@ impl Worker {
                 } else {
                     window
                 };
-            while batch.len() < self.config.max_batch {
-                let next = match receiver.try_recv() {
-                    Ok(work) => Some(work),
-                    Err(_) if batch.len() >= company => None,
-                    Err(_) => receiver.recv_deadline(deadline).ok(),
-                };
-                match next {
-                    Some(work) => batch.push(work),
-                    None => break,
+            loop {
+                while batch.len() < self.config.max_batch {
+                    match receiver.try_recv() {
+                        Ok(work) => batch.push(work),
+                        Err(_) => break,
+                    }
                 }
+                if batch.len() >= company || Instant::now() >= deadline {
+                    break;
+                }
+                let wanted = company - batch.len();
+                self.doorbell.sleep(wanted, || receiver.len(), deadline);
             }
             // A session twice in one batch (two streams on one session) goes in order: its
             // later steps wait for the next round.
@@ -403,7 +478,7 @@ impl Worker {
         for work in works {
             slots.push(work.slot);
             requests.push((work.request, work.arrival));
-            replies.push(Some(work.reply));
+            replies.push(work.reply);
         }
         let mut guards: Vec<_> = slots.iter().map(|slot| slot.lock()).collect();
         let inputs: Vec<StepInput<'_>> = requests
@@ -416,23 +491,31 @@ impl Worker {
             .collect();
         let Workspace { evaluator, scratch } = self.workspaces.get(&guards[0].policy);
         let mut sessions: Vec<&mut Session> = guards.iter_mut().map(|guard| &mut **guard).collect();
+        let mut answers: Vec<Answer> = Vec::with_capacity(replies.len());
         apply_steps(
             &mut sessions,
             &inputs,
             evaluator,
             scratch,
-            |i, session, report| {
-                let answer: Answer = report
-                    .map(|report| (session.response(&report), report.served))
-                    .map_err(Status::from);
-                let reply = replies[i].take().expect("one answer per step");
-                // A caller that gave up meanwhile takes nothing: the step is taken back.
-                match reply.send(answer) {
-                    Ok(()) => Taken::Yes,
-                    Err(_) => Taken::No,
-                }
+            |_, session, report| {
+                answers.push(
+                    report
+                        .map(|report| (session.response(&report), report.served))
+                        .map_err(Status::from),
+                );
             },
         );
+        // Answered together once the whole batch is built, so that the handlers the answers wake
+        // find them all ready (`handlers_do_not_preempt` lets the worker finish first).
+        debug_assert_eq!(answers.len(), replies.len());
+        for ((reply, answer), session) in replies.into_iter().zip(answers).zip(&mut sessions) {
+            let served = answer.as_ref().ok().map(|(_, served)| *served);
+            // A caller that gave up meanwhile takes nothing: the step is taken back, still
+            // under its session's lock, so nobody ever sees it applied.
+            if let (Err(_), Some(served)) = (reply.send(answer), served) {
+                session.take_back(served);
+            }
+        }
     }
 }
 
@@ -457,5 +540,53 @@ mod tests {
         // Two epochs without a step: nobody is active.
         std::thread::sleep(Duration::from_millis(3 * ACTIVITY_EPOCH_MS));
         assert_eq!(activity.sessions(), 0);
+    }
+
+    /// A worker sleeping for `wanted` steps, on its own thread: how long it slept.
+    fn sleeper(
+        doorbell: &Arc<Doorbell>,
+        receiver: &Receiver<u32>,
+        wanted: usize,
+        deadline: Duration,
+    ) -> std::thread::JoinHandle<Duration> {
+        let (bell, queue) = (doorbell.clone(), receiver.clone());
+        let (ready, started) = crossbeam_channel::bounded(1);
+        let worker = std::thread::spawn(move || {
+            ready.send(()).unwrap();
+            let start = Instant::now();
+            bell.sleep(wanted, || queue.len(), start + deadline);
+            start.elapsed()
+        });
+        let _ = doorbell.worker.set(worker.thread().clone());
+        started.recv().unwrap();
+        worker
+    }
+
+    #[test]
+    fn the_doorbell_wakes_its_worker_once_all_it_waits_for_is_queued() {
+        let (queue, receiver) = crossbeam_channel::bounded(8);
+        let doorbell = Arc::new(Doorbell::default());
+        // Three steps awaited, a minute allowed: the third step rings.
+        let worker = sleeper(&doorbell, &receiver, 3, Duration::from_secs(60));
+        for step in 0..3 {
+            std::thread::sleep(Duration::from_millis(20));
+            queue.send(step).unwrap();
+            doorbell.queued(|| queue.len());
+        }
+        assert!(worker.join().unwrap() < Duration::from_secs(30));
+        assert_eq!(doorbell.wanted.load(Ordering::Relaxed), 0);
+    }
+
+    #[test]
+    fn the_doorbell_lets_its_worker_sleep_to_the_deadline_while_steps_are_missing() {
+        let (queue, receiver) = crossbeam_channel::bounded(8);
+        let doorbell = Arc::new(Doorbell::default());
+        let deadline = Duration::from_millis(200);
+        let worker = sleeper(&doorbell, &receiver, 3, deadline);
+        for step in 0..2 {
+            queue.send(step).unwrap();
+            doorbell.queued(|| queue.len());
+        }
+        assert!(worker.join().unwrap() >= deadline);
     }
 }

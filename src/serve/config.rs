@@ -112,8 +112,9 @@ settings! {
     batch_queue: usize = "4096", number::<usize>,
         "Steps that may wait for a batch worker; more are refused with \
         RESOURCE_EXHAUSTED.";
-    batch_workers: usize = "2", number::<usize>,
-        "Batch worker threads.";
+    batch_workers: usize = "none", number::<usize>,
+        "Batch worker threads; none (the default) runs one per core the server may use (its \
+        CPU affinity, e.g. taskset or a cpuset, and its cgroup CPU quota).";
     auth_tokens: PathBuf = "none", path,
         "File of bearer tokens, one per line: every prac.v1 call must carry \
         `authorization: Bearer TOKEN`, and a session belongs to the token that opened \
@@ -245,6 +246,12 @@ pub fn socket_address(text: &str) -> Result<SocketAddr, String> {
         .ok_or_else(|| format!("{text:?} resolves to no address"))
 }
 
+/// Cores this process may run on: one batch worker each, so that a server pinned to one core
+/// replans its sessions in one batch instead of splitting them between workers that take turns.
+fn usable_cores() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get())
+}
+
 /// A duration where 0 means "never".
 fn nonzero(d: Duration) -> Option<Duration> {
     (!d.is_zero()).then_some(d)
@@ -289,7 +296,7 @@ impl ServeConfig {
                 max_batch,
                 window: s.batch_window.expect(has),
                 queue: s.batch_queue.expect(has),
-                workers: s.batch_workers.expect(has),
+                workers: s.batch_workers.unwrap_or_else(usable_cores),
             }),
             auth_tokens: s.auth_tokens,
             tls: match (s.tls_cert, s.tls_key) {
@@ -441,7 +448,7 @@ mod tests {
                 max_batch: 64,
                 window: Duration::ZERO,
                 queue: 4096,
-                workers: 2,
+                workers: usable_cores(),
             })
         );
         assert_eq!((c.auth_tokens, c.tls, c.metrics_listen), (None, None, None));

@@ -10,6 +10,7 @@ mod intake;
 mod memory;
 mod metrics;
 mod registry;
+mod scheduling;
 mod service;
 pub(crate) mod session;
 mod transport;
@@ -27,6 +28,7 @@ use tonic_health::ServingStatus;
 pub use config::{LogFormat, ServeArgs, ServeConfig, duration, socket_address};
 use registry::Registry;
 pub use registry::servable;
+pub use scheduling::handlers_do_not_preempt;
 use service::{PracService, ServerState};
 use session::Sessions;
 

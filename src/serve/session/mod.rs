@@ -99,9 +99,9 @@ pub struct StepInput<'a> {
 /// executed at the last step), commit each result, and answer it. A session whose step is
 /// refused, or whose replan meets a non-finite value, is left exactly as it was.
 ///
-/// `answer(i, session, report)` hands step `i`'s report to its caller, still under the session's
-/// lock, and says whether the caller took it. A step whose caller did not (it gave up meanwhile)
-/// is taken back, so that nobody ever sees it applied.
+/// `answer(i, session, report)` gets step `i`'s report, still under the session's lock. A caller
+/// that holds the lock until its answer is delivered takes back ([`Session::take_back`]) a step
+/// whose caller gave up meanwhile, so that nobody ever sees it applied.
 ///
 /// The request handler applies a batch of one, which allocates nothing after the session's
 /// first step; a batch worker applies many at once.
@@ -110,7 +110,7 @@ pub(crate) fn apply_steps(
     inputs: &[StepInput<'_>],
     evaluator: &mut Evaluator,
     scratch: &mut ReplanScratch,
-    mut answer: impl FnMut(usize, &Session, Result<StepReport, StepError>) -> Taken,
+    mut answer: impl FnMut(usize, &Session, Result<StepReport, StepError>),
 ) {
     debug_assert_eq!(sessions.len(), inputs.len());
     debug_assert!(
@@ -144,18 +144,8 @@ pub(crate) fn apply_steps(
             let outcome = results.next().expect("one result per job")?;
             Ok(session.commit(&begun, outcome, rng))
         });
-        let served = report.as_ref().ok().map(|report| report.served);
-        if let (Taken::No, Some(served)) = (answer(i, session, report), served) {
-            session.take_back(served);
-        }
+        answer(i, session, report);
     }
-}
-
-/// Whether a step's caller took its answer.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum Taken {
-    Yes,
-    No,
 }
 
 impl Session {
@@ -198,7 +188,6 @@ impl Session {
         let mut answered = None;
         apply_steps(&mut [self], &[input], evaluator, scratch, |_, _, report| {
             answered = Some(report);
-            Taken::Yes
         });
         answered.expect("one answer per step")
     }
