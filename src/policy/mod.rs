@@ -136,6 +136,10 @@ pub struct Evaluator {
     critics: Vec<MlpScratch>,
     model_input: Vec<f32>,
     model: MlpScratch,
+    /// FLOPs of one row of the actor, of every critic together, and of the model.
+    row_flops: (u64, u64, u64),
+    /// FLOPs evaluated since the last [`Evaluator::take_flops`].
+    flops: u64,
 }
 
 impl Evaluator {
@@ -175,8 +179,19 @@ impl Evaluator {
                 .model
                 .as_ref()
                 .map_or_else(MlpScratch::default, |m| m.net.scratch_for(rows)),
+            row_flops: {
+                let (actor, critic, model) = policy.flops();
+                (actor, critic * policy.critic_count() as u64, model)
+            },
+            flops: 0,
             policy,
         }
+    }
+
+    /// FLOPs of the network rows evaluated since the last call: what the steps in between
+    /// cost, whatever the batch they were evaluated in.
+    pub fn take_flops(&mut self) -> u64 {
+        std::mem::take(&mut self.flops)
     }
     pub(crate) fn policy(&self) -> &Arc<Policy> {
         &self.policy
@@ -195,6 +210,7 @@ impl Evaluator {
     ) {
         let (od, ad) = (self.policy.obs_dim(), self.policy.act_dim());
         let n = obs.len() / od;
+        self.flops += 2 * n as u64 * self.row_flops.1;
         let obs = normalize(&self.obs_scale, obs, &mut self.normalized);
         self.critic_input.clear();
         for actions in [a, b] {
@@ -251,6 +267,7 @@ impl Networks for Evaluator {
         let n = obs.len() / self.policy.obs_dim();
         let ad = self.policy.act_dim();
         let obs = normalize(&self.obs_scale, obs, &mut self.normalized);
+        self.flops += n as u64 * self.row_flops.0;
         let latent = actor.trunk.forward_rows(obs, &mut self.actor);
         resize(&mut self.mu, n * ad);
         actor.mu.forward_rows(latent, &mut self.mu);
@@ -293,6 +310,7 @@ impl Networks for Evaluator {
             distance[..n].fill(f32::NAN);
             return;
         };
+        self.flops += n as u64 * self.row_flops.0;
         let obs = normalize(&self.obs_scale, obs, &mut self.normalized);
         let latent = actor.trunk.forward_rows(obs, &mut self.actor);
         resize(&mut self.mu, n * ad);
@@ -317,6 +335,7 @@ impl Networks for Evaluator {
         };
         let (od, ad) = (self.policy.obs_dim(), self.policy.act_dim());
         let n = obs.len() / od;
+        self.flops += n as u64 * self.row_flops.2;
         let norm = &model.normalization;
         self.model_input.clear();
         for k in 0..n {
@@ -433,6 +452,26 @@ mod tests {
     use super::*;
     use crate::nn::Activation;
     use crate::testing::test_manifest;
+
+    #[test]
+    fn the_evaluator_counts_the_flops_of_the_rows_it_evaluates() {
+        let policy = Arc::new(crate::testing::toy_policy("toy", 1));
+        let (actor, critic, model) = policy.flops();
+        let critics = policy.critic_count() as u64;
+        let (od, ad) = (policy.obs_dim(), policy.act_dim());
+        let mut evaluator = Evaluator::new(policy);
+        let (obs, actions) = (vec![0.1; 3 * od], vec![0.2; 3 * ad]);
+        let mut out = vec![0.0; 3 * od];
+        evaluator.act(&obs, &vec![0.0; 3 * ad], &mut out[..3 * ad]);
+        evaluator.predict_next(&obs[..2 * od], &actions[..2 * ad], &mut out[..2 * od]);
+        let (mut q_a, mut q_b) = (vec![0.0; 3], vec![0.0; 3]);
+        evaluator.q_pair(&obs, &actions, &actions, &mut q_a, &mut q_b);
+        assert_eq!(
+            evaluator.take_flops(),
+            3 * actor + 2 * model + 2 * 3 * critic * critics
+        );
+        assert_eq!(evaluator.take_flops(), 0);
+    }
 
     #[test]
     fn round_tripped_actions_come_back_from_the_bounds_unchanged() {

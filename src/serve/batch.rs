@@ -13,7 +13,7 @@
 //! on its control clock), it waits for their steps, up to [`COMPANY_WAIT`], before replanning, so
 //! that a core whose steps arrive one by one still replans them together instead of one at a
 //! time. While it waits it sleeps until the last expected step is queued ([`Doorbell`]), not
-//! woken by each step on the way. Steps too cheap to be worth a hand-off ([`CHEAP_STEP`]) stay in
+//! woken by each step on the way. Steps too cheap to be worth a hand-off ([`CHEAP_STEP_FLOPS`]) stay in
 //! their handlers.
 
 use std::collections::HashMap;
@@ -39,11 +39,13 @@ const COMPANY_WAIT: Duration = Duration::from_micros(1_000);
 /// How often an idle worker looks whether the server has stopped (its queue disconnected).
 const IDLE_RECHECK: Duration = Duration::from_millis(100);
 
-/// A step whose replan took less than this (a moving average over the steps replanned in handlers
-/// and, per step, in batches) costs less than the hand-off to a worker thread and the wait for
-/// company: such steps are replanned in their handlers whatever the company (one-step serving,
-/// short plans).
-const CHEAP_STEP: Duration = Duration::from_micros(50);
+/// A step whose replan evaluates fewer network FLOPs than this (a moving average over the steps
+/// replanned in handlers and in batches) costs less than the hand-off to a worker thread and the
+/// wait for company (about 10 us at a lone row's rate): such steps are replanned in their
+/// handlers whatever the company (one-step serving: one actor row). Counted in FLOPs, not time,
+/// since a step batched with others takes a fraction of its time alone, and the choice must not
+/// flip with the choice it made.
+const CHEAP_STEP_FLOPS: u64 = 500_000;
 
 /// How recently a session must have stepped to count as active ([`Activity`]).
 const ACTIVITY_EPOCH_MS: u64 = 20;
@@ -191,24 +193,25 @@ pub(super) struct Batcher {
     activity: Vec<Arc<Activity>>,
     /// Per worker, how a step wakes it when it waits for company.
     doorbells: Vec<Arc<Doorbell>>,
-    /// Moving average of a step's replan, in nanoseconds ([`CHEAP_STEP`]).
+    /// Moving average of a step's replan, in FLOPs ([`CHEAP_STEP_FLOPS`]).
     step_cost: Arc<StepCost>,
 }
 
-/// A moving average of what a step's replan costs, over about the last 16 steps or batches.
+/// A moving average of the FLOPs of a step's replan, over about the last 16 steps or batches.
 #[derive(Default)]
 pub(super) struct StepCost(AtomicU64);
 
 impl StepCost {
-    fn note(&self, per_step: Duration) {
-        let took = per_step.as_nanos().min(u128::from(u64::MAX)) as u64;
+    fn note(&self, flops_per_step: u64) {
         let average = self.0.load(Ordering::Relaxed);
-        self.0
-            .store(average - average / 16 + took / 16, Ordering::Relaxed);
+        self.0.store(
+            average - average / 16 + flops_per_step / 16,
+            Ordering::Relaxed,
+        );
     }
 
     fn cheap(&self) -> bool {
-        self.0.load(Ordering::Relaxed) < CHEAP_STEP.as_nanos() as u64
+        self.0.load(Ordering::Relaxed) < CHEAP_STEP_FLOPS
     }
 }
 
@@ -263,9 +266,9 @@ impl Batcher {
         }
     }
 
-    /// Records how long a step replanned in its handler took (see [`CHEAP_STEP`]).
-    pub(super) fn note_alone_cost(&self, took: Duration) {
-        self.step_cost.note(took);
+    /// Records the FLOPs of a step replanned in its handler (see [`CHEAP_STEP_FLOPS`]).
+    pub(super) fn note_alone_cost(&self, flops: u64) {
+        self.step_cost.note(flops);
     }
 
     /// The worker of a session: one per session keeps its steps in order.
@@ -462,14 +465,15 @@ impl Worker {
                     mine.push(work);
                 }
             }
-            let (started, steps) = (Instant::now(), mine.len() as u32);
-            self.replan_group(mine);
-            self.step_cost.note(started.elapsed() / steps.max(1));
+            let steps = mine.len() as u64;
+            let flops = self.replan_group(mine);
+            self.step_cost.note(flops / steps.max(1));
         }
     }
 
-    /// Replans the sessions of `works` (all of one policy, each session once) together.
-    fn replan_group(&mut self, mut works: Vec<Work>) {
+    /// Replans the sessions of `works` (all of one policy, each session once) together; returns
+    /// the FLOPs it took.
+    fn replan_group(&mut self, mut works: Vec<Work>) -> u64 {
         // Sessions are locked in one global order, so workers never wait on each other in a cycle.
         works.sort_by_key(|work| Arc::as_ptr(&work.slot));
         let mut slots = Vec::with_capacity(works.len());
@@ -516,6 +520,7 @@ impl Worker {
                 session.take_back(served);
             }
         }
+        evaluator.take_flops()
     }
 }
 

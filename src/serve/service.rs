@@ -270,10 +270,11 @@ impl ServerState {
                 new_episode: request.new_episode,
                 arrival,
             };
-            let started = std::time::Instant::now();
-            let report = session.apply_step(evaluator, scratch, input)?;
+            let report = session.apply_step(evaluator, scratch, input);
+            let flops = evaluator.take_flops();
+            let report = report?;
             if let Some(batcher) = &self.batcher {
-                batcher.note_alone_cost(started.elapsed());
+                batcher.note_alone_cost(flops);
             }
             self.metrics.replanned(ReplannedBy::Handler);
             Ok((session.response(&report), report.served))

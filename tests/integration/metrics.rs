@@ -212,3 +212,78 @@ async fn the_metrics_endpoint_sheds_silent_clients_beyond_64_and_still_answers_a
     assert_eq!(shed(&server.stderr()), 11, "{}", server.stderr());
     drop(silent);
 }
+
+/// Whether a step is worth handing to a batch worker is judged by its network FLOPs, which do
+/// not depend on where it ran: robots stepping together on a trained Hopper's PrAC plans are
+/// replanned together, not alternately in their handlers whenever batching had made them look
+/// cheap.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn concurrent_prac_steps_of_a_trained_policy_are_replanned_by_the_batch_workers() {
+    const ROBOTS: usize = 4;
+    const STEPS: usize = 40;
+    let dir = tempfile::tempdir().unwrap();
+    let shipped = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("bundles");
+    std::fs::copy(
+        shipped.join("hopper.safetensors"),
+        dir.path().join("hopper.safetensors"),
+    )
+    .unwrap();
+    let (server, addr) = with_metrics(dir.path(), &[]).await;
+    let mut robots = Vec::new();
+    for seed in 0..ROBOTS as u64 {
+        let mut client = server.client().await;
+        robots.push(tokio::spawn(async move {
+            let id = client
+                .open_session(proto::OpenSessionRequest {
+                    policy: "hopper".into(),
+                    options: Some(proto::SessionOptions {
+                        tolerance: Some(proto::session_options::Tolerance::EpsilonCoef(0.005)),
+                        ..Default::default()
+                    }),
+                    resume: None,
+                })
+                .await
+                .unwrap()
+                .into_inner()
+                .session_id;
+            let mut env = prac::domains::make("hopper").unwrap();
+            let mut observation = vec![0.0; env.spec().obs_dim];
+            env.reset(seed, &mut observation).unwrap();
+            let mut new_episode = true;
+            for _ in 0..STEPS {
+                let answer = client
+                    .step(proto::StepRequest {
+                        session_id: id.clone(),
+                        observation: observation.clone(),
+                        new_episode,
+                    })
+                    .await
+                    .unwrap()
+                    .into_inner();
+                let moved = env.step(&answer.action, &mut observation).unwrap();
+                new_episode = moved.terminated || moved.truncated;
+                if new_episode {
+                    env.reset(seed, &mut observation).unwrap();
+                }
+            }
+        }));
+    }
+    for robot in robots {
+        robot.await.unwrap();
+    }
+    let text = scrape(&addr);
+    let by = |place: &str| {
+        let name = format!("prac_replanned_total{{by=\"{place}\"}}");
+        if text.contains(&name) {
+            sample(&text, &name)
+        } else {
+            0.0
+        }
+    };
+    let (worker, handler) = (by("batch_worker"), by("handler"));
+    assert_eq!(worker + handler, (ROBOTS * STEPS) as f64);
+    assert!(
+        worker >= 0.9 * (ROBOTS * STEPS) as f64,
+        "{worker} steps by the batch workers, {handler} in handlers"
+    );
+}
