@@ -194,6 +194,16 @@ impl Dense {
     unsafe fn forward_avx512<const RELU: bool>(&self, inputs: &[f32], outputs: &mut [f32]) {
         let inp = self.input_dim();
         let n = inputs.len() / inp;
+        if (1..=3).contains(&n) {
+            // Few rows: each output's chain of FMAs is serial (the bits depend on its order),
+            // so a tile needs about 8 chains in flight to cover the FMA's latency. One or two
+            // rows take 8 panels at a time (8 or 16 accumulators), three rows 4 (12).
+            for tile in self.tiles(if n == 3 { 4 } else { 8 }) {
+                // SAFETY: the CPU has AVX-512F (this function's feature).
+                unsafe { tile.avx512_few_rows::<RELU>(n, inputs, outputs) }
+            }
+            return;
+        }
         for tile in self.tiles(2) {
             // SAFETY: the CPU has AVX-512F (this function's feature).
             unsafe {
@@ -322,6 +332,37 @@ impl Tile<'_> {
                     2 => self.avx512::<2, P, RELU>(x, y),
                     _ => self.avx512::<1, P, RELU>(x, y),
                 }
+            }
+        }
+    }
+
+    /// All of 1 to 3 rows through this tile's panels (up to 8 for 1 or 2 rows, 4 for 3).
+    #[target_feature(enable = "avx512f")]
+    unsafe fn avx512_few_rows<const RELU: bool>(&self, n: usize, x: &[f32], y: &mut [f32]) {
+        // SAFETY: the CPU has AVX-512F (this function's feature).
+        unsafe {
+            match (n, self.panels) {
+                (1, 8) => self.avx512::<1, 8, RELU>(x, y),
+                (1, 7) => self.avx512::<1, 7, RELU>(x, y),
+                (1, 6) => self.avx512::<1, 6, RELU>(x, y),
+                (1, 5) => self.avx512::<1, 5, RELU>(x, y),
+                (1, 4) => self.avx512::<1, 4, RELU>(x, y),
+                (1, 3) => self.avx512::<1, 3, RELU>(x, y),
+                (1, 2) => self.avx512::<1, 2, RELU>(x, y),
+                (1, 1) => self.avx512::<1, 1, RELU>(x, y),
+                (2, 8) => self.avx512::<2, 8, RELU>(x, y),
+                (2, 7) => self.avx512::<2, 7, RELU>(x, y),
+                (2, 6) => self.avx512::<2, 6, RELU>(x, y),
+                (2, 5) => self.avx512::<2, 5, RELU>(x, y),
+                (2, 4) => self.avx512::<2, 4, RELU>(x, y),
+                (2, 3) => self.avx512::<2, 3, RELU>(x, y),
+                (2, 2) => self.avx512::<2, 2, RELU>(x, y),
+                (2, 1) => self.avx512::<2, 1, RELU>(x, y),
+                (3, 4) => self.avx512::<3, 4, RELU>(x, y),
+                (3, 3) => self.avx512::<3, 3, RELU>(x, y),
+                (3, 2) => self.avx512::<3, 2, RELU>(x, y),
+                (3, 1) => self.avx512::<3, 1, RELU>(x, y),
+                _ => unreachable!("{n} rows through {} panels", self.panels),
             }
         }
     }
@@ -789,9 +830,19 @@ mod tests {
         // 53 = 16 + 16 + 16 + 5: a partial panel inside a two-panel tile), every tile height,
         // one input; with and without the fused ReLU, and a NaN input in the first row.
         let bits = |v: &[f32]| v.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
-        for (out, inp) in [(37, 23), (53, 7), (16, 1), (5, 256), (256, 18)] {
+        // Few rows take wide tiles: 133 = 8 x 16 + 5 (a full 8-panel tile, then a partial
+        // panel alone), 100 = 6 x 16 + 4 (a 7-panel tile ending in a partial panel).
+        for (out, inp) in [
+            (37, 23),
+            (53, 7),
+            (16, 1),
+            (5, 256),
+            (256, 18),
+            (133, 11),
+            (100, 9),
+        ] {
             let d = layer(out, inp, 5.0);
-            for n in [1, 2, 5, 6, 7, 12, 13, 25] {
+            for n in [1, 2, 3, 4, 5, 6, 7, 12, 13, 25] {
                 let mut x: Vec<f32> = (0..n * inp).map(|i| (i as f32 * 0.29).sin()).collect();
                 x[inp - 1] = f32::NAN;
                 let mut plain = vec![0.0; n * out];
