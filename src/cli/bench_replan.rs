@@ -100,6 +100,19 @@ impl<N: Networks> Networks for Counting<N> {
         self.acts += (obs.len() / self.obs_dim()) as u64;
         self.inner.policy_distance(obs, actions, distance)
     }
+    fn act_and_distance(
+        &mut self,
+        obs: &[f32],
+        noise: &[f32],
+        actions: &mut [f32],
+        planned: &[f32],
+        distance: &mut [f32],
+    ) {
+        self.calls += 1;
+        self.acts += (obs.len() / self.obs_dim()) as u64;
+        self.inner
+            .act_and_distance(obs, noise, actions, planned, distance)
+    }
     fn predict_next(&mut self, obs: &[f32], actions: &[f32], next_obs: &mut [f32]) {
         self.calls += 1;
         self.predicts += (obs.len() / self.obs_dim()) as u64;

@@ -48,6 +48,19 @@ pub trait Networks {
     /// Per row, how far `actions` lie from the policy's Gaussian at `obs`: the largest
     /// [`support_distance`] over the action's dimensions. NaN for an actor without a Gaussian.
     fn policy_distance(&mut self, obs: &[f32], actions: &[f32], distance: &mut [f32]);
+    /// [`Networks::act`], and per row the [`Networks::policy_distance`] of `planned` at the same
+    /// `obs`, which an actor can take from the same pass.
+    fn act_and_distance(
+        &mut self,
+        obs: &[f32],
+        noise: &[f32],
+        actions: &mut [f32],
+        planned: &[f32],
+        distance: &mut [f32],
+    ) {
+        self.act(obs, noise, actions);
+        self.policy_distance(obs, planned, distance);
+    }
 }
 
 /// The largest squashed action magnitude whose pre-tanh value [`support_distance`] takes; both
@@ -451,9 +464,11 @@ pub struct ReplanScratch {
     out: Vec<f32>,
     q_policy: Vec<f32>,
     q_planned: Vec<f32>,
-    /// Per tested old action, for guarded jobs: the largest one-critic gap and the policy
-    /// distance.
+    /// Per tested old action, for guarded jobs: the largest one-critic gap; per chunk row, the
+    /// old action's distance from the policy (drawn with the policy's actions), and per row of
+    /// that actor call.
     largest_gap: Vec<f32>,
+    chunk_distance: Vec<f32>,
     distance: Vec<f32>,
 }
 
@@ -482,6 +497,7 @@ impl ReplanScratch {
             q_policy: Vec::with_capacity(rows),
             q_planned: Vec::with_capacity(rows),
             largest_gap: Vec::with_capacity(rows),
+            chunk_distance: Vec::with_capacity(rows),
             distance: Vec::with_capacity(rows),
         }
     }
@@ -674,12 +690,24 @@ fn draw_policy_actions<N: Networks, R: Rng + Clone>(
     s.rows.clear();
     s.obs.clear();
     s.noise.clear();
+    // The old actions under test, whose distance from the policy a support limit needs: the
+    // same actor pass gives it. Extending rows have none (zeros, their distance unused).
+    let support = jobs
+        .iter()
+        .zip(&s.jobs)
+        .any(|(job, st)| st.phase == Phase::Checking && job.config.guard.support_limit > 0.0);
+    s.actions.clear();
     for (i, (job, st)) in jobs.iter_mut().zip(&s.jobs).enumerate() {
         match st.phase {
             Phase::Checking => {
                 let rows = chunk_rows(st);
                 let at = st.first_row * od;
                 s.obs.extend_from_slice(&s.chunk_states[at..at + rows * od]);
+                if support {
+                    for m in 0..rows {
+                        s.actions.extend_from_slice(job.old.action(st.checked + m));
+                    }
+                }
                 let mut ahead = job.rng.clone();
                 for _ in 0..rows * ad {
                     s.noise.push(if job.config.sampled {
@@ -699,6 +727,9 @@ fn draw_policy_actions<N: Networks, R: Rng + Clone>(
                         0.0
                     });
                 }
+                if support {
+                    s.actions.extend(std::iter::repeat_n(0.0, ad));
+                }
                 s.rows.push(i);
             }
             _ => {}
@@ -708,7 +739,13 @@ fn draw_policy_actions<N: Networks, R: Rng + Clone>(
         return;
     }
     crate::nn::resize(&mut s.out, s.rows.len() * ad);
-    nets.act(&s.obs, &s.noise, &mut s.out);
+    if support {
+        crate::nn::resize(&mut s.distance, s.rows.len());
+        nets.act_and_distance(&s.obs, &s.noise, &mut s.out, &s.actions, &mut s.distance);
+        crate::nn::resize(&mut s.chunk_distance, s.chunk_states.len() / od);
+    } else {
+        nets.act(&s.obs, &s.noise, &mut s.out);
+    }
     crate::nn::resize(&mut s.chunk_policy, s.chunk_states.len() / od * ad);
     let mut r = 0;
     while r < s.rows.len() {
@@ -718,6 +755,10 @@ fn draw_policy_actions<N: Networks, R: Rng + Clone>(
             let rows = chunk_rows(st);
             let at = st.first_row * ad;
             s.chunk_policy[at..at + rows * ad].copy_from_slice(&s.out[r * ad..(r + rows) * ad]);
+            if support {
+                s.chunk_distance[st.first_row..st.first_row + rows]
+                    .copy_from_slice(&s.distance[r..r + rows]);
+            }
             r += rows;
         } else {
             let action = &s.out[r * ad..(r + 1) * ad];
@@ -764,14 +805,10 @@ fn test_chunks<N: Networks, R: Rng>(
     }
     crate::nn::resize(&mut s.q_policy, rows);
     crate::nn::resize(&mut s.q_planned, rows);
-    let checking = || {
-        jobs.iter()
-            .zip(&s.jobs)
-            .filter(|(_, st)| st.phase == Phase::Checking)
-            .map(|(job, _)| job.config.guard)
-    };
-    let every_critic = checking().any(|g| g.every_critic);
-    let support = checking().any(|g| g.support_limit > 0.0);
+    let every_critic = jobs
+        .iter()
+        .zip(&s.jobs)
+        .any(|(job, st)| st.phase == Phase::Checking && job.config.guard.every_critic);
     // `noise` holds the policy's actions here (a reused buffer).
     if every_critic {
         crate::nn::resize(&mut s.largest_gap, rows);
@@ -791,10 +828,6 @@ fn test_chunks<N: Networks, R: Rng>(
             &mut s.q_policy,
             &mut s.q_planned,
         );
-    }
-    if support {
-        crate::nn::resize(&mut s.distance, rows);
-        nets.policy_distance(&s.obs, &s.actions, &mut s.distance);
     }
     let mut row = 0;
     for (i, (job, st)) in jobs.iter_mut().zip(s.jobs.iter_mut()).enumerate() {
@@ -835,7 +868,7 @@ fn test_chunks<N: Networks, R: Rng>(
                 break;
             }
             let distance = if guard.support_limit > 0.0 {
-                s.distance[base + m]
+                s.chunk_distance[state_row]
             } else {
                 0.0
             };

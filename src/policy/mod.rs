@@ -197,6 +197,44 @@ impl Evaluator {
         &self.policy
     }
 
+    /// The actor over `obs`: `mu` and, for a Gaussian actor, `log_std` hold its rows after.
+    /// Says whether the actor is Gaussian.
+    fn run_actor(&mut self, obs: &[f32]) -> bool {
+        let actor = &self.policy.actor;
+        let n = obs.len() / self.policy.obs_dim();
+        let ad = self.policy.act_dim();
+        self.flops += n as u64 * self.row_flops.0;
+        let obs = normalize(&self.obs_scale, obs, &mut self.normalized);
+        let latent = actor.trunk.forward_rows(obs, &mut self.actor);
+        resize(&mut self.mu, n * ad);
+        actor.mu.forward_rows(latent, &mut self.mu);
+        let Some(log_std_head) = &actor.log_std else {
+            return false;
+        };
+        resize(&mut self.log_std, n * ad);
+        log_std_head.forward_rows(latent, &mut self.log_std);
+        true
+    }
+
+    /// Per row of the last actor pass, the largest [`support_distance`] of `actions` from its
+    /// Gaussian; NaN for an actor without one.
+    fn distances(&self, gaussian: bool, actions: &[f32], distance: &mut [f32]) {
+        let ad = self.policy.act_dim();
+        let n = self.mu.len() / ad;
+        if !gaussian {
+            distance[..n].fill(f32::NAN);
+            return;
+        }
+        for (k, d) in distance[..n].iter_mut().enumerate() {
+            *d = (k * ad..(k + 1) * ad)
+                .map(|i| {
+                    let std = self.log_std[i].clamp(LOG_STD_MIN, LOG_STD_MAX).exp();
+                    support_distance(actions[i], self.mu[i], std)
+                })
+                .fold(0.0, |m: f32, v| if v > m || v.is_nan() { v } else { m });
+        }
+    }
+
     /// Aggregated critic values of (obs, a) and (obs, b), and where asked the largest gap one
     /// critic sees, `max_c (Q_c(obs, a) - Q_c(obs, b))`.
     fn q_values(
@@ -263,26 +301,16 @@ impl Networks for Evaluator {
     }
 
     fn act(&mut self, obs: &[f32], noise: &[f32], actions: &mut [f32]) {
-        let actor = &self.policy.actor;
-        let n = obs.len() / self.policy.obs_dim();
-        let ad = self.policy.act_dim();
-        let obs = normalize(&self.obs_scale, obs, &mut self.normalized);
-        self.flops += n as u64 * self.row_flops.0;
-        let latent = actor.trunk.forward_rows(obs, &mut self.actor);
-        resize(&mut self.mu, n * ad);
-        actor.mu.forward_rows(latent, &mut self.mu);
-        let Some(log_std_head) = &actor.log_std else {
-            let clip = actor.mean_clip;
-            for (a, mu) in actions[..n * ad].iter_mut().zip(&self.mu) {
+        if self.run_actor(obs) {
+            for i in 0..self.mu.len() {
+                let std = self.log_std[i].clamp(LOG_STD_MIN, LOG_STD_MAX).exp();
+                actions[i] = (self.mu[i] + std * noise[i]).tanh();
+            }
+        } else {
+            let clip = self.policy.actor.mean_clip;
+            for (a, mu) in actions.iter_mut().zip(&self.mu) {
                 *a = mu.clamp(-clip, clip).tanh();
             }
-            return;
-        };
-        resize(&mut self.log_std, n * ad);
-        log_std_head.forward_rows(latent, &mut self.log_std);
-        for i in 0..n * ad {
-            let std = self.log_std[i].clamp(LOG_STD_MIN, LOG_STD_MAX).exp();
-            actions[i] = (self.mu[i] + std * noise[i]).tanh();
         }
     }
 
@@ -303,28 +331,25 @@ impl Networks for Evaluator {
     }
 
     fn policy_distance(&mut self, obs: &[f32], actions: &[f32], distance: &mut [f32]) {
-        let actor = &self.policy.actor;
-        let n = obs.len() / self.policy.obs_dim();
-        let ad = self.policy.act_dim();
-        let Some(log_std_head) = &actor.log_std else {
-            distance[..n].fill(f32::NAN);
+        if self.policy.actor.log_std.is_none() {
+            distance[..obs.len() / self.policy.obs_dim()].fill(f32::NAN);
             return;
-        };
-        self.flops += n as u64 * self.row_flops.0;
-        let obs = normalize(&self.obs_scale, obs, &mut self.normalized);
-        let latent = actor.trunk.forward_rows(obs, &mut self.actor);
-        resize(&mut self.mu, n * ad);
-        actor.mu.forward_rows(latent, &mut self.mu);
-        resize(&mut self.log_std, n * ad);
-        log_std_head.forward_rows(latent, &mut self.log_std);
-        for (k, d) in distance[..n].iter_mut().enumerate() {
-            *d = (k * ad..(k + 1) * ad)
-                .map(|i| {
-                    let std = self.log_std[i].clamp(LOG_STD_MIN, LOG_STD_MAX).exp();
-                    support_distance(actions[i], self.mu[i], std)
-                })
-                .fold(0.0, |m: f32, v| if v > m || v.is_nan() { v } else { m });
         }
+        let gaussian = self.run_actor(obs);
+        self.distances(gaussian, actions, distance);
+    }
+
+    fn act_and_distance(
+        &mut self,
+        obs: &[f32],
+        noise: &[f32],
+        actions: &mut [f32],
+        planned: &[f32],
+        distance: &mut [f32],
+    ) {
+        self.act(obs, noise, actions);
+        let gaussian = self.policy.actor.log_std.is_some();
+        self.distances(gaussian, planned, distance);
     }
 
     fn predict_next(&mut self, obs: &[f32], actions: &[f32], next_obs: &mut [f32]) {
@@ -452,6 +477,26 @@ mod tests {
     use super::*;
     use crate::nn::Activation;
     use crate::testing::test_manifest;
+
+    #[test]
+    fn one_actor_pass_gives_the_actions_and_distances_of_two() {
+        let policy = Arc::new(crate::testing::toy_policy("toy", 3));
+        assert!(policy.actor.log_std.is_some(), "the toy actor is Gaussian");
+        let (od, ad) = (policy.obs_dim(), policy.act_dim());
+        let obs: Vec<f32> = (0..5 * od).map(|i| (i as f32 * 0.37).sin()).collect();
+        let noise: Vec<f32> = (0..5 * ad).map(|i| (i as f32 * 0.91).cos()).collect();
+        let planned: Vec<f32> = (0..5 * ad).map(|i| (i as f32 * 0.53).sin()).collect();
+        let mut evaluator = Evaluator::new(policy);
+        let (mut actions, mut distance) = (vec![0.0; 5 * ad], vec![0.0; 5]);
+        evaluator.act_and_distance(&obs, &noise, &mut actions, &planned, &mut distance);
+        let (mut apart, mut apart_distance) = (vec![0.0; 5 * ad], vec![0.0; 5]);
+        evaluator.act(&obs, &noise, &mut apart);
+        evaluator.policy_distance(&obs, &planned, &mut apart_distance);
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&actions), bits(&apart));
+        assert_eq!(bits(&distance), bits(&apart_distance));
+        assert!(distance.iter().all(|d| d.is_finite() && *d > 0.0));
+    }
 
     #[test]
     fn the_evaluator_counts_the_flops_of_the_rows_it_evaluates() {
