@@ -45,6 +45,8 @@ pub mod testing;
 #[cfg(feature = "train")]
 pub mod train;
 
+pub use nn::{Kernel, kernel, use_kernel};
+
 pub mod proto {
     //! Generated from proto/prac/v1/prac.proto.
     tonic::include_proto!("prac.v1");

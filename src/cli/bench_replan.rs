@@ -32,10 +32,16 @@ pub struct BenchReplanArgs {
     /// eps coefficient of --bundle's session (eps = coef x (V_pi - V_rand)).
     #[arg(long, default_value_t = 0.005)]
     epsilon_coef: f64,
+    /// The dense layers' code path: auto (the widest the CPU has), avx512, avx2 or scalar, to
+    /// measure one path on a CPU that has a wider one.
+    #[arg(long, value_enum, default_value_t = prac::Kernel::Auto)]
+    kernel: prac::Kernel,
 }
 
 impl BenchReplanArgs {
     pub fn run(self) -> anyhow::Result<()> {
+        prac::use_kernel(self.kernel).map_err(anyhow::Error::msg)?;
+        println!("dense-layer kernel: {:?}", prac::kernel());
         let per_case = Duration::from_secs_f64(self.seconds);
         if !self.bundle.is_empty() {
             let rows = self

@@ -5,8 +5,66 @@
 //! Buffers live in caller-owned scratch and only grow, so a forward allocates nothing once a batch
 //! size has been seen.
 
+use std::sync::atomic::{AtomicU8, Ordering};
+
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
+
+/// The dense layers' code path: register tiles for the widest vectors the CPU has, or a named one.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Kernel {
+    /// The widest the CPU has: AVX-512, else AVX2 + FMA, else scalar.
+    Auto,
+    Avx512,
+    Avx2,
+    Scalar,
+}
+
+/// The kernel every dense layer uses ([`use_kernel`]); `Kernel::Auto as u8` until set.
+static KERNEL: AtomicU8 = AtomicU8::new(Kernel::Auto as u8);
+
+/// Makes every dense layer of this process use `kernel`, so that a benchmark can compare the
+/// paths on one CPU; refused when the CPU lacks its features. Every path gives the same bits.
+pub fn use_kernel(kernel: Kernel) -> Result<(), String> {
+    #[cfg(target_arch = "x86_64")]
+    let supported = match kernel {
+        Kernel::Auto | Kernel::Scalar => true,
+        Kernel::Avx512 => std::is_x86_feature_detected!("avx512f"),
+        Kernel::Avx2 => {
+            std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma")
+        }
+    };
+    #[cfg(not(target_arch = "x86_64"))]
+    let supported = matches!(kernel, Kernel::Auto | Kernel::Scalar);
+    if !supported {
+        return Err(format!("this CPU cannot run the {kernel:?} kernel"));
+    }
+    KERNEL.store(kernel as u8, Ordering::Relaxed);
+    Ok(())
+}
+
+/// The kernel in use: the one set by [`use_kernel`], else the widest the CPU has.
+pub fn kernel() -> Kernel {
+    match KERNEL.load(Ordering::Relaxed) {
+        k if k == Kernel::Avx512 as u8 => Kernel::Avx512,
+        k if k == Kernel::Avx2 as u8 => Kernel::Avx2,
+        k if k == Kernel::Scalar as u8 => Kernel::Scalar,
+        _ => widest_kernel(),
+    }
+}
+
+fn widest_kernel() -> Kernel {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::is_x86_feature_detected!("avx512f") {
+            return Kernel::Avx512;
+        }
+        if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+            return Kernel::Avx2;
+        }
+    }
+    Kernel::Scalar
+}
 
 /// Activation applied after hidden layers.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -118,31 +176,27 @@ impl Dense {
                 && inputs.len().is_multiple_of(inp)
                 && outputs.len() == inputs.len() / inp * out
         );
-        #[cfg(target_arch = "x86_64")]
-        if std::is_x86_feature_detected!("avx512f") {
-            // SAFETY: the CPU has the features the function is compiled for.
-            unsafe {
+        match kernel() {
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: `kernel` names AVX-512 only where the CPU has it.
+            Kernel::Avx512 => unsafe {
                 match relu {
                     true => self.forward_avx512::<true>(inputs, outputs),
                     false => self.forward_avx512::<false>(inputs, outputs),
                 }
-            };
-            return;
-        }
-        #[cfg(target_arch = "x86_64")]
-        if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
-            // SAFETY: the CPU has the features the function is compiled for.
-            unsafe {
+            },
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: `kernel` names AVX2 only where the CPU has it and FMA.
+            Kernel::Avx2 => unsafe {
                 match relu {
                     true => self.forward_avx2::<true>(inputs, outputs),
                     false => self.forward_avx2::<false>(inputs, outputs),
                 }
-            };
-            return;
-        }
-        match relu {
-            true => self.forward_scalar::<true>(inputs, outputs),
-            false => self.forward_scalar::<false>(inputs, outputs),
+            },
+            _ => match relu {
+                true => self.forward_scalar::<true>(inputs, outputs),
+                false => self.forward_scalar::<false>(inputs, outputs),
+            },
         }
     }
 

@@ -210,6 +210,25 @@ fn bench_train_times_updates_a_short_run_and_the_replay_checkpoint() {
 }
 
 #[test]
+fn bench_replan_measures_the_kernel_it_is_told_to() {
+    let out = prac(&[
+        "bench-replan",
+        "--seconds",
+        "0.02",
+        "--lengths",
+        "1",
+        "--batches",
+        "1",
+        "--kernel",
+        "scalar",
+    ]);
+    assert!(out.status.success(), "{out:?}");
+    let text = String::from_utf8(out.stdout).unwrap();
+    assert!(text.starts_with("dense-layer kernel: Scalar\n"), "{text}");
+    assert!(text.contains("MLP kernel: one critic"), "{text}");
+}
+
+#[test]
 fn bench_replan_on_a_bundle_plays_its_domain_and_refuses_a_foreign_one() {
     let bundle = concat!(env!("CARGO_MANIFEST_DIR"), "/bundles/pendulum.safetensors");
     let out = prac(&["bench-replan", "--seconds", "0.05", "--bundle", bundle]);
