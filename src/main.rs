@@ -67,6 +67,9 @@ enum Command {
     /// keeps the model's forecasts inside it: for bundles of prac's domains made before bundles
     /// carried them.
     ObsBounds(cli::obs_bounds::ObsBoundsArgs),
+    /// Set the plan guard a bundle's sessions get when they ask for none (`default_guard`,
+    /// format 5), or remove it with --none.
+    DefaultGuard(cli::default_guard::DefaultGuardArgs),
 }
 
 fn main() -> ExitCode {
@@ -91,6 +94,7 @@ fn main() -> ExitCode {
         Command::BenchReplan(args) => args.run(),
         Command::ModelError(args) => args.run(),
         Command::ObsBounds(args) => args.run(),
+        Command::DefaultGuard(args) => args.run(),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -5,6 +5,7 @@
 use serde::{Deserialize, Serialize};
 
 pub use crate::nn::Activation;
+pub use crate::plan::Guard;
 
 /// The version a bundle is written with when it uses nothing newer (every bundle `prac train`
 /// writes): old servers keep reading them.
@@ -17,8 +18,11 @@ pub(crate) const FORMAT_VERSION_CRITIC_NORMS: u32 = 3;
 /// Version 4 adds `obs_bounds` (the observation space, which keeps the model's forecasts inside
 /// it).
 pub const FORMAT_VERSION_OBS_BOUNDS: u32 = 4;
+/// Version 5 adds `default_guard` (the plan guard of sessions that ask for none): an older
+/// server must refuse such a bundle rather than serve it without its guard.
+pub const FORMAT_VERSION_DEFAULT_GUARD: u32 = 5;
 /// The newest version this prac reads.
-pub(crate) const NEWEST_FORMAT_VERSION: u32 = FORMAT_VERSION_OBS_BOUNDS;
+pub(crate) const NEWEST_FORMAT_VERSION: u32 = FORMAT_VERSION_DEFAULT_GUARD;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Manifest {
@@ -52,6 +56,10 @@ pub struct Manifest {
     /// Absent: forecasts are not bounded.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub obs_bounds: Option<ObsBounds>,
+    /// The plan guard of a session that sets none (format 5), chosen from the bundle's measured
+    /// falls. Absent: the paper's test.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub default_guard: Option<Guard>,
     pub provenance: Provenance,
 }
 
@@ -241,7 +249,7 @@ pub struct Provenance {
 
 impl Manifest {
     /// Checks everything the tensors do not: returns the offending field and why.
-    pub(crate) fn validate(&self) -> Result<(), (String, String)> {
+    pub fn validate(&self) -> Result<(), (String, String)> {
         let fail = |field: &str, why: String| Err((field.to_string(), why));
         if !(FORMAT_VERSION..=NEWEST_FORMAT_VERSION).contains(&self.format_version) {
             return fail(
@@ -295,6 +303,9 @@ impl Manifest {
                     );
                 }
             }
+        }
+        if let Some(guard) = &self.default_guard {
+            self.validate_default_guard(guard)?;
         }
         if self.format_version < FORMAT_VERSION_CRITIC_NORMS && self.critic.layer_norm {
             return fail(
@@ -427,6 +438,36 @@ impl Manifest {
             }
         }
         self.validate_value_scale()
+    }
+
+    fn validate_default_guard(&self, guard: &Guard) -> Result<(), (String, String)> {
+        let fail = |field: &str, why: String| Err((format!("default_guard{field}"), why));
+        if self.format_version < FORMAT_VERSION_DEFAULT_GUARD {
+            return fail(
+                "",
+                format!(
+                    "needs format_version {FORMAT_VERSION_DEFAULT_GUARD}, the bundle says {}",
+                    self.format_version
+                ),
+            );
+        }
+        let limit = guard.support_limit;
+        if !(limit.is_finite() && limit >= 0.0) {
+            return fail(
+                ".support_limit",
+                format!("is {limit}; expected a finite value >= 0 (0: no limit)"),
+            );
+        }
+        if limit > 0.0 && !self.actor.kind.is_gaussian() {
+            return fail(
+                ".support_limit",
+                format!(
+                    "measures actions against the policy's Gaussian, and the actor is {}",
+                    self.actor.kind.as_str()
+                ),
+            );
+        }
+        Ok(())
     }
 
     fn validate_value_scale(&self) -> Result<(), (String, String)> {

@@ -523,8 +523,8 @@ fn actor_kinds_need_format_2_and_a_clip_only_where_it_means_something() {
             .contains("only for gaussian_sde actors")
     );
     let mut newer = small_policy();
-    newer.manifest.format_version = 5;
-    assert!(reason(newer).contains("this prac reads versions 1 to 4"));
+    newer.manifest.format_version = 6;
+    assert!(reason(newer).contains("this prac reads versions 1 to 5"));
     // A Gaussian actor's manifest says nothing of kinds: version-1 bytes stay as they were.
     let json = serde_json::to_string(&small_policy().manifest).unwrap();
     assert!(
@@ -715,4 +715,62 @@ fn bad_observation_bounds_are_named() {
     // A bundle without bounds writes none: its bytes stay readable by older servers.
     let json = serde_json::to_string(&plain.manifest).unwrap();
     assert!(!json.contains("obs_bounds"), "{json}");
+}
+
+fn guarded(policy: &Policy, guard: crate::plan::Guard) -> Policy {
+    let mut policy = policy.clone();
+    policy.manifest.format_version = crate::manifest::FORMAT_VERSION_DEFAULT_GUARD;
+    policy.manifest.default_guard = Some(guard);
+    policy
+}
+
+#[test]
+fn a_default_guard_round_trips_and_bad_ones_are_named() {
+    use crate::plan::Guard;
+    let reason = |policy: Policy| {
+        let json = serde_json::to_string(&policy.manifest).unwrap();
+        let e = load_error(&rebuild(&tensors(&policy), Some(&json)));
+        format!("{}: {}", e.field, e.reason)
+    };
+    let plain = small_policy();
+    let guard = Guard {
+        every_critic: true,
+        support_limit: 3.5,
+    };
+    let loaded = from_bytes(&to_bytes(&guarded(&plain, guard)).unwrap(), &path()).unwrap();
+    assert_eq!(loaded.manifest.default_guard, Some(guard));
+    // An older server must refuse it rather than serve without the guard: format 5.
+    let mut old = guarded(&plain, guard);
+    old.manifest.format_version = crate::manifest::FORMAT_VERSION_OBS_BOUNDS;
+    assert_eq!(
+        reason(old),
+        "manifest.default_guard: needs format_version 5, the bundle says 4"
+    );
+    let negative = Guard {
+        every_critic: false,
+        support_limit: -1.0,
+    };
+    assert_eq!(
+        reason(guarded(&plain, negative)),
+        "manifest.default_guard.support_limit: is -1; expected a finite value >= 0 (0: no limit)"
+    );
+    let mut deterministic = guarded(&plain, guard);
+    deterministic.manifest.format_version = crate::manifest::FORMAT_VERSION_DEFAULT_GUARD;
+    deterministic.manifest.actor.kind = crate::manifest::ActorKind::Deterministic;
+    deterministic.actor.log_std = None;
+    let why = reason(deterministic.clone());
+    assert!(
+        why.starts_with("manifest.default_guard.support_limit: measures actions against"),
+        "{why}"
+    );
+    // every_critic alone needs no Gaussian.
+    deterministic.manifest.default_guard = Some(Guard {
+        every_critic: true,
+        support_limit: 0.0,
+    });
+    let json = serde_json::to_string(&deterministic.manifest).unwrap();
+    assert!(deterministic.manifest.validate().is_ok(), "{json}");
+    // A bundle without one writes none.
+    let json = serde_json::to_string(&plain.manifest).unwrap();
+    assert!(!json.contains("default_guard"), "{json}");
 }

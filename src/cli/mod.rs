@@ -7,6 +7,7 @@ pub mod bench_replan;
 #[cfg(feature = "train")]
 pub mod bench_train;
 pub mod copy_bundles;
+pub mod default_guard;
 pub mod domains;
 pub mod env_serve;
 pub mod evaluate;

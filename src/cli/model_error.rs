@@ -38,6 +38,10 @@ pub struct ModelErrorArgs {
     /// standard deviations from its mean also breaks the plan [default: no limit].
     #[arg(long, value_name = "Z")]
     support_limit: Option<f64>,
+    /// The paper's test alone, whatever guard the bundle sets by default (without any guard flag
+    /// the sessions get the bundle's default_guard, as served).
+    #[arg(long, conflicts_with_all = ["every_critic", "support_limit"])]
+    paper_test: bool,
     /// Also write every figure, with the traces before falls, as JSON.
     #[arg(long)]
     json: Option<PathBuf>,
@@ -58,12 +62,11 @@ impl ModelErrorArgs {
             let options = prac::proto::SessionOptions {
                 tolerance: Some(Tolerance::EpsilonCoef(coef)),
                 growth: self.fixed.map(Growth::Fixed),
-                guard: (self.every_critic || self.support_limit.is_some()).then_some(
-                    prac::proto::PlanGuard {
+                guard: (self.every_critic || self.support_limit.is_some() || self.paper_test)
+                    .then_some(prac::proto::PlanGuard {
                         every_critic: self.every_critic,
                         support_limit: self.support_limit.unwrap_or(0.0),
-                    },
-                ),
+                    }),
                 ..Default::default()
             };
             let config = SessionSettings::resolve(Some(&options), &policy, prac::plan::MAX_CHUNK)

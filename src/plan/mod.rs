@@ -96,13 +96,15 @@ pub const DEFAULT_MAX_HORIZON: usize = 32;
 /// Conditions that also break a plan at an old action `a`, beyond the paper's test. Algorithm 2
 /// trusts the critics' aggregate at actions the policy would not take, where a critic errs most;
 /// these keep an action only where the critics are on firmer ground. Off by default (the paper).
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Guard {
     /// Break where any one critic rates `a` more than eps below pi(s):
     /// `max_c (Q_c(s, pi(s)) - Q_c(s, a)) > eps`.
+    #[serde(default)]
     pub every_critic: bool,
     /// Break where `a` lies more than this many of the policy's standard deviations from its
     /// mean at s ([`Networks::policy_distance`]); 0 sets no limit.
+    #[serde(default)]
     pub support_limit: f32,
 }
 

@@ -109,6 +109,9 @@ pub(super) fn policy_info(name: &str, policy: &Policy) -> proto::PolicyInfo {
         content_hash: policy.content_hash.clone(),
         q_aggregation: m.q_aggregation.as_str().to_string(),
         format_version: m.format_version,
+        default_guard: Some(super::session::guard_proto(
+            m.default_guard.unwrap_or_default(),
+        )),
     }
 }
 

@@ -92,6 +92,7 @@ pub(crate) fn manifest(
         value_scale: None,
         obs_normalization: None,
         obs_bounds: Some(ObsBounds::from_limits(&spec.obs_low, &spec.obs_high)),
+        default_guard: None,
         provenance: Provenance {
             trainer: "prac train (SAC + dynamics model, burn 0.22.1)".to_string(),
             steps,

@@ -45,6 +45,82 @@ fn inspect_prints_the_manifest_and_a_forward_pass() {
     assert_eq!(manifest, policy.manifest);
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn default_guard_sets_what_sessions_without_a_guard_get() {
+    use prac::proto::{OpenSessionRequest, PlanGuard, SessionOptions};
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("toy.safetensors");
+    prac::bundle::save(&toy_policy("toy", 4), &file).unwrap();
+    let file = file.to_str().unwrap();
+    let out = prac(&[
+        "default-guard",
+        file,
+        "--every-critic",
+        "--support-limit",
+        "3",
+    ]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{out:?}");
+    assert!(
+        stdout.contains("default guard every critic, support limit 3 (format 5)"),
+        "{stdout}"
+    );
+    // Bad requests change nothing.
+    let before = std::fs::read(file).unwrap();
+    let out = prac(&["default-guard", file]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--none to remove"));
+    let out = prac(&["default-guard", file, "--support-limit=-1"]);
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("manifest.default_guard.support_limit is -1"),
+        "{stderr}"
+    );
+    assert_eq!(std::fs::read(file).unwrap(), before);
+
+    let server = common::Server::start(dir.path(), &[]);
+    server.wait_serving().await;
+    let mut client = server.client().await;
+    let listed = client
+        .list_policies(prac::proto::ListPoliciesRequest {})
+        .await
+        .unwrap()
+        .into_inner();
+    let guard = PlanGuard {
+        every_critic: true,
+        support_limit: 3.0,
+    };
+    assert_eq!(listed.policies[0].default_guard, Some(guard));
+    let open = |guard: Option<PlanGuard>| OpenSessionRequest {
+        policy: "toy".into(),
+        options: Some(SessionOptions {
+            guard,
+            ..Default::default()
+        }),
+        resume: None,
+    };
+    let resolved = |response: tonic::Response<prac::proto::OpenSessionResponse>| {
+        response.into_inner().options.unwrap().guard.unwrap()
+    };
+    assert_eq!(
+        resolved(client.open_session(open(None)).await.unwrap()),
+        guard
+    );
+    // An empty guard still asks for the paper's test.
+    let paper = Some(PlanGuard::default());
+    assert_eq!(
+        resolved(client.open_session(open(paper)).await.unwrap()),
+        PlanGuard::default()
+    );
+    drop(server);
+
+    let out = prac(&["default-guard", file, "--none"]);
+    assert!(out.status.success(), "{out:?}");
+    let policy = prac::bundle::load(std::path::Path::new(file)).unwrap();
+    assert_eq!(policy.manifest.default_guard, None);
+}
+
 #[test]
 fn a_manifest_declaring_a_billion_critics_is_an_error_not_an_abort() {
     let dir = tempfile::tempdir().unwrap();

@@ -375,6 +375,9 @@ class Service(pb_grpc.PracServicer):  # type: ignore[misc]
             action_high=p.high.tolist(),
             gamma=p.manifest["gamma"],
         )
+        default_guard = p.manifest.get("default_guard") or {}
+        info.default_guard.every_critic = default_guard.get("every_critic", False)
+        info.default_guard.support_limit = float(F32(default_guard.get("support_limit", 0.0)))
         if p.value_scale:
             info.value_scale.v_pi = p.value_scale["v_pi"]
             info.value_scale.v_rand = p.value_scale["v_rand"]
@@ -401,8 +404,10 @@ class Service(pb_grpc.PracServicer):  # type: ignore[misc]
         grow = o.grow if growth == "grow" else (None if growth == "fixed" else 2)
         fixed = o.fixed if growth == "fixed" else None
         horizon = o.max_horizon or (max(fixed, DEFAULT_MAX_HORIZON) if fixed else DEFAULT_MAX_HORIZON)
-        every_critic = o.HasField("guard") and o.guard.every_critic
-        support_limit = o.guard.support_limit if o.HasField("guard") else 0.0
+        # Unset: the bundle's default_guard (absent: the paper's test).
+        guard = o.guard if o.HasField("guard") else p.manifest.get("default_guard") or {}
+        every_critic = bool(guard.every_critic if o.HasField("guard") else guard.get("every_critic", False))
+        support_limit = guard.support_limit if o.HasField("guard") else guard.get("support_limit", 0.0)
         if support_limit > 0 and p.log_std_w is None:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "guard.support_limit needs a Gaussian actor")
         session = Session(request.policy, p, float(F32(eps)), grow, fixed, horizon, every_critic, float(F32(support_limit)))

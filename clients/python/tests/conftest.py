@@ -36,10 +36,12 @@ def write_toy_bundle(
     seed: int = 1,
     layer_norm: bool = False,
     obs_bounds: tuple[list[float], list[float]] | None = None,
+    default_guard: dict[str, Any] | None = None,
 ) -> pathlib.Path:
     """A random Pendulum-shaped policy: obs 3, act 1 in [-2, 2], value scale (10, -10); with
     `layer_norm`, its critics normalise each hidden layer (with_layer_norm_critics); with
-    `obs_bounds` (low, high), its forecasts are kept inside them."""
+    `obs_bounds` (low, high), its forecasts are kept inside them; with `default_guard`
+    ({"every_critic": .., "support_limit": ..}), sessions that set no guard get it (format 5)."""
     state = random_sb3_state_dict(3, 1, [32, 32], seed=seed)
     tensors, manifest = from_sb3_state_dict(
         state,
@@ -54,6 +56,8 @@ def write_toy_bundle(
     )
     if layer_norm:
         tensors, manifest = with_layer_norm_critics(dict(tensors), dict(manifest))
+    if default_guard is not None:
+        manifest = {**manifest, "format_version": 5, "default_guard": default_guard}
     path = directory / f"{name}.safetensors"
     write_bundle(path, tensors, manifest)
     return path

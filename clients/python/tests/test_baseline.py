@@ -41,9 +41,27 @@ def test_the_baseline_keeps_forecasts_inside_the_observation_bounds_as_prac_serv
     assert (seen[:, 2] < -0.5).any(), "the unbounded side was bounded"
 
 
-def answers_alike(bundles: pathlib.Path, server: Server) -> np.ndarray:
+def test_the_baseline_applies_a_bundles_default_guard_as_prac_serve_does(tmp_path: pathlib.Path) -> None:
+    default_guard = {"every_critic": True, "support_limit": 0.5}
+    write_toy_bundle(tmp_path, default_guard=default_guard)
+    server = Server(tmp_path)
+    try:
+        with Client(server.address, timeout=10) as client:
+            (info,) = client.policies()
+            assert (info.default_guard.every_critic, info.default_guard.support_limit) == (True, 0.5)
+            session = client.session("pendulum", epsilon=1e-4)
+            assert (session.options.guard.every_critic, session.options.guard.support_limit) == (True, 0.5)
+            session.close()
+        # Sessions that set no guard get the default; the guarded ones must break plans.
+        answers_alike(tmp_path, server, bundle_default=True)
+    finally:
+        server.stop()
+
+
+def answers_alike(bundles: pathlib.Path, server: Server, bundle_default: bool = False) -> np.ndarray:
     """Steps both servers alike and compares every answer; returns prac serve's forecast
-    observations."""
+    observations. With `bundle_default`, no session sets a guard: the bundle's default_guard
+    guards them all."""
     baseline = subprocess.Popen(
         [sys.executable, str(REPO / "clients" / "python" / "baseline" / "server.py"), "--bundles", str(bundles), "--listen", "127.0.0.1:0"],
         stdout=subprocess.PIPE,
@@ -67,6 +85,8 @@ def answers_alike(bundles: pathlib.Path, server: Server) -> np.ndarray:
                 (1e-4, "grow 2", True, 0.5),
             ):
                 guard = {"every_critic": every_critic, "support_limit": support_limit}
+                if bundle_default:
+                    guard, every_critic = {}, True
                 a = ours.session("pendulum", epsilon=epsilon, growth=growth, max_horizon=12, **guard)
                 b = theirs.session("pendulum", epsilon=epsilon, growth=growth, max_horizon=12, **guard)
                 obs = rng.uniform(-1, 1, 3)

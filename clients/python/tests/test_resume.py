@@ -210,9 +210,15 @@ def test_options_in_force_reopen_the_same_session() -> None:
     with Client("127.0.0.1:1", token="secret", affinity="robot-17") as client:
         assert client._metadata == (("authorization", "Bearer secret"), ("x-prac-affinity", "robot-17"))
 
-    resolved = pb.ResolvedOptions(epsilon=0.25, growth_mode="fixed", growth=8, max_horizon=12, sampled=True, seed=7)
+    guard = pb.PlanGuard(every_critic=True, support_limit=3.0)
+    resolved = pb.ResolvedOptions(epsilon=0.25, growth_mode="fixed", growth=8, max_horizon=12, sampled=True, seed=7, guard=guard)
     options = _resume.options_in_force(resolved)
     assert (options.epsilon, options.fixed, options.max_horizon, options.sampled, options.seed) == (0.25, 8, 12, True, 7)
+    assert options.HasField("guard") and options.guard == guard
+    # The paper's test in force stays the paper's test (an empty guard), whatever the next
+    # server's bundle sets by default.
+    paper = _resume.options_in_force(pb.ResolvedOptions(epsilon=0.25, growth_mode="grow", growth=2, guard=pb.PlanGuard()))
+    assert paper.HasField("guard") and paper.guard == pb.PlanGuard()
 
 
 def nginx_binary() -> str | None:

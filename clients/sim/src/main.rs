@@ -64,6 +64,10 @@ struct PlanArgs {
     /// mean also breaks the plan (guard.support_limit) [default: no limit].
     #[arg(long, value_name = "Z")]
     support_limit: Option<f64>,
+    /// The paper's test alone, whatever guard the policy's bundle sets by default (an empty
+    /// guard). Without any guard flag the sessions get the bundle's default_guard.
+    #[arg(long, conflicts_with_all = ["every_critic", "support_limit"])]
+    paper_test: bool,
 }
 
 impl PlanArgs {
@@ -84,6 +88,7 @@ impl PlanArgs {
             max_horizon: self.max_horizon.unwrap_or(0),
             every_critic: self.every_critic,
             support_limit: self.support_limit.unwrap_or(0.0),
+            paper_test: self.paper_test,
         })
     }
 }
@@ -229,6 +234,7 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
             anyhow::ensure!(*episodes >= 1, "--episodes must be >= 1");
             let plan = plan.shape()?;
             let info = served_policy(&mut client, policy, local.as_ref()).await?;
+            let plan = plan.with_default_guard(&info);
             let tol = match (epsilon, epsilon_coef) {
                 (Some(e), _) => Tol::Absolute(*e),
                 (None, Some(c)) => Tol::Coef(*c),
@@ -312,6 +318,7 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
             );
             anyhow::ensure!(*episodes >= 2, "--episodes must be >= 2");
             let info = served_policy(&mut client, policy, local.as_ref()).await?;
+            let plan = plan.with_default_guard(&info);
             let result =
                 sweep::run(&client, &info, coefs, plan, *episodes, *seed, !cli.quiet).await?;
             sweep::write(&result, out)?;

@@ -27,9 +27,11 @@ pub enum Tol {
 pub struct PlanShape {
     pub growth: Option<Growth>,
     pub max_horizon: u32,
-    /// The session option guard (off: the paper's test alone).
+    /// The session option guard (off: the policy's default_guard, or with `paper_test` the
+    /// paper's test alone).
     pub every_critic: bool,
     pub support_limit: f64,
+    pub paper_test: bool,
 }
 
 impl PlanShape {
@@ -43,19 +45,35 @@ impl PlanShape {
         let critics = self.every_critic.then(|| "every critic".to_string());
         let support =
             (self.support_limit > 0.0).then(|| format!("support limit {}", self.support_limit));
-        let parts: Vec<String> = [growth, cap, critics, support]
+        let paper = self.paper_test.then(|| "the paper's test".to_string());
+        let parts: Vec<String> = [growth, cap, critics, support, paper]
             .into_iter()
             .flatten()
             .collect();
         (!parts.is_empty()).then(|| parts.join(", "))
     }
 
-    /// The session option guard, where one is asked for.
+    /// The session option guard, where one is asked for (an empty one for the paper's test).
     pub fn guard(&self) -> Option<proto::PlanGuard> {
-        (self.every_critic || self.support_limit > 0.0).then_some(proto::PlanGuard {
-            every_critic: self.every_critic,
-            support_limit: self.support_limit,
-        })
+        (self.every_critic || self.support_limit > 0.0 || self.paper_test).then_some(
+            proto::PlanGuard {
+                every_critic: self.every_critic,
+                support_limit: self.support_limit,
+            },
+        )
+    }
+
+    /// The shape with the policy's default guard written out where none is asked for, so that
+    /// what is printed is what the server does.
+    pub fn with_default_guard(self, info: &proto::PolicyInfo) -> PlanShape {
+        match &info.default_guard {
+            Some(g) if self.guard().is_none() => PlanShape {
+                every_critic: g.every_critic,
+                support_limit: g.support_limit,
+                ..self
+            },
+            _ => self,
+        }
     }
 }
 

@@ -20,8 +20,8 @@ mod store;
 #[cfg(test)]
 mod tests;
 
-pub(crate) use settings::MAX_COUNTER;
 pub use settings::SessionSettings;
+pub(crate) use settings::{MAX_COUNTER, guard_proto};
 pub(crate) use store::{SessionError, SessionSlot, Sessions};
 
 /// A step request the session cannot serve; the session is unchanged.

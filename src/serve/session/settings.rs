@@ -93,8 +93,9 @@ impl SessionSettings {
                 policy.manifest.actor.kind.as_str()
             ));
         }
+        // The bundle's default was checked when it loaded.
         let guard = match &options.guard {
-            None => Guard::default(),
+            None => policy.manifest.default_guard.unwrap_or_default(),
             Some(g) => resolve_guard(g, policy)?,
         };
         Ok(SessionSettings {
@@ -121,11 +122,15 @@ impl SessionSettings {
             max_horizon: self.replan.max_horizon as u32,
             sampled: self.replan.sampled,
             seed: self.seed,
-            guard: Some(proto::PlanGuard {
-                every_critic: self.replan.guard.every_critic,
-                support_limit: self.replan.guard.support_limit as f64,
-            }),
+            guard: Some(guard_proto(self.replan.guard)),
         }
+    }
+}
+
+pub(crate) fn guard_proto(guard: Guard) -> proto::PlanGuard {
+    proto::PlanGuard {
+        every_critic: guard.every_critic,
+        support_limit: guard.support_limit as f64,
     }
 }
 

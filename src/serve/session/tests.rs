@@ -264,3 +264,49 @@ fn a_guard_resolves_as_the_proto_says() {
     }));
     assert!(resolve(&critics_only, &deterministic).is_ok());
 }
+
+#[test]
+fn a_session_without_a_guard_gets_its_bundles_default_guard() {
+    let guard = crate::plan::Guard {
+        every_critic: true,
+        support_limit: 3.0,
+    };
+    let mut policy = (*policy()).clone();
+    policy.manifest.default_guard = Some(guard);
+    let resolve = |options: Option<&proto::SessionOptions>| {
+        SessionSettings::resolve(options, &policy, 256).unwrap()
+    };
+    // No options, or options without a guard: the bundle's default, and the answer says so.
+    let unset = proto::SessionOptions::default();
+    for options in [None, Some(&unset)] {
+        let settings = resolve(options);
+        assert_eq!(settings.replan.guard, guard);
+        assert_eq!(
+            settings.to_proto().guard,
+            Some(proto::PlanGuard {
+                every_critic: true,
+                support_limit: 3.0
+            })
+        );
+    }
+    // An empty guard asks for the paper's test; a guard of its own replaces the default.
+    let paper = proto::SessionOptions {
+        guard: Some(proto::PlanGuard::default()),
+        ..Default::default()
+    };
+    assert_eq!(resolve(Some(&paper)).replan.guard, Default::default());
+    let own = proto::SessionOptions {
+        guard: Some(proto::PlanGuard {
+            every_critic: false,
+            support_limit: 5.0,
+        }),
+        ..Default::default()
+    };
+    assert_eq!(
+        resolve(Some(&own)).replan.guard,
+        crate::plan::Guard {
+            every_critic: false,
+            support_limit: 5.0
+        }
+    );
+}

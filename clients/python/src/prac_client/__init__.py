@@ -24,7 +24,7 @@ from prac_client.errors import (
     SessionNotFound,
     Unauthenticated,
 )
-from prac_client.types import Plan, PolicyInfo, SessionOptions, StepResult, ValueScale
+from prac_client.types import Plan, PlanGuard, PolicyInfo, SessionOptions, StepResult, ValueScale
 
 __all__ = [
     "Client",
@@ -35,6 +35,7 @@ __all__ = [
     "Overloaded",
     "PermissionDenied",
     "Plan",
+    "PlanGuard",
     "PolicyInfo",
     "PolicyNotFound",
     "PracError",

@@ -29,7 +29,7 @@ def held_plan(response: pb.StepResponse) -> pb.Plan:
 
 def options_in_force(resolved: pb.ResolvedOptions) -> pb.SessionOptions:
     """The options a session was opened with, as resolved by its first server (epsilon absolute),
-    so that a resumed session keeps exactly its tolerance, growth, horizon and seed."""
+    so that a resumed session keeps exactly its tolerance, growth, horizon, seed and guard."""
     options = pb.SessionOptions(
         epsilon=resolved.epsilon,
         max_horizon=resolved.max_horizon,
@@ -40,6 +40,10 @@ def options_in_force(resolved: pb.ResolvedOptions) -> pb.SessionOptions:
         options.fixed = resolved.growth
     else:
         options.grow = resolved.growth
+    # The guard in force, which may have been the bundle's default: explicit, so another server's
+    # default cannot change it.
+    if resolved.HasField("guard"):
+        options.guard.CopyFrom(resolved.guard)
     return options
 
 

@@ -23,6 +23,18 @@ class ValueScale:
 
 
 @dataclass(frozen=True)
+class PlanGuard:
+    """Conditions that also break a plan, beyond the paper's test (all off: the paper's test)."""
+
+    every_critic: bool
+    support_limit: float
+
+    @staticmethod
+    def from_proto(g: pb.PlanGuard) -> PlanGuard:
+        return PlanGuard(g.every_critic, g.support_limit)
+
+
+@dataclass(frozen=True)
 class PolicyInfo:
     name: str
     domain: str
@@ -35,6 +47,8 @@ class PolicyInfo:
     content_hash: str
     q_aggregation: str
     format_version: int
+    # The guard of a session that sets none (the bundle's default_guard).
+    default_guard: PlanGuard
 
     @staticmethod
     def from_proto(p: pb.PolicyInfo) -> PolicyInfo:
@@ -51,6 +65,7 @@ class PolicyInfo:
             content_hash=p.content_hash,
             q_aggregation=p.q_aggregation,
             format_version=p.format_version,
+            default_guard=PlanGuard.from_proto(p.default_guard),
         )
 
 
@@ -64,10 +79,13 @@ class SessionOptions:
     max_horizon: int
     sampled: bool
     seed: int
+    # The guard in force.
+    guard: PlanGuard
 
     @staticmethod
     def from_proto(o: pb.ResolvedOptions) -> SessionOptions:
-        return SessionOptions(o.epsilon, o.growth_mode, o.growth, o.max_horizon, o.sampled, o.seed)
+        guard = PlanGuard.from_proto(o.guard)
+        return SessionOptions(o.epsilon, o.growth_mode, o.growth, o.max_horizon, o.sampled, o.seed, guard)
 
 
 def _planned(entries: Sequence[Any], act_dim: int, obs_dim: int) -> tuple[FloatArray, FloatArray, IntArray]:

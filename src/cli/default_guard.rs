@@ -1,0 +1,72 @@
+//! `prac default-guard FILE... [--every-critic] [--support-limit Z] | --none`: sets the plan guard
+//! a bundle's sessions get when they ask for none.
+
+use std::path::PathBuf;
+
+use clap::Args;
+
+use prac::bundle;
+use prac::manifest::{FORMAT_VERSION_DEFAULT_GUARD, Guard};
+
+#[derive(Args, Debug)]
+pub struct DefaultGuardArgs {
+    /// Bundles; each is rewritten in place (atomically).
+    #[arg(required = true)]
+    files: Vec<PathBuf>,
+    /// Any one critic rating a kept action more than eps below pi(s) breaks the plan.
+    #[arg(long, conflicts_with = "none")]
+    every_critic: bool,
+    /// An action further than Z of the policy's standard deviations from its mean breaks the plan.
+    #[arg(long, value_name = "Z", conflicts_with = "none")]
+    support_limit: Option<f32>,
+    /// Remove the default: sessions that set no guard get the paper's test.
+    #[arg(long)]
+    none: bool,
+}
+
+impl DefaultGuardArgs {
+    pub fn run(self) -> anyhow::Result<()> {
+        let guard = Guard {
+            every_critic: self.every_critic,
+            support_limit: self.support_limit.unwrap_or(0.0),
+        };
+        if !self.none && !self.every_critic && self.support_limit.is_none() {
+            anyhow::bail!(
+                "give --every-critic and/or --support-limit Z > 0, or --none to remove the default"
+            );
+        }
+        for file in &self.files {
+            let mut policy = bundle::load(file)?;
+            let manifest = &mut policy.manifest;
+            if self.none {
+                manifest.default_guard = None;
+            } else {
+                manifest.default_guard = Some(guard);
+                manifest.format_version = manifest.format_version.max(FORMAT_VERSION_DEFAULT_GUARD);
+            }
+            // Checked as a server loading it checks it, before the file is replaced.
+            if let Err((field, why)) = policy.manifest.validate() {
+                anyhow::bail!("{}: manifest.{field} {why}", file.display());
+            }
+            bundle::save(&policy, file)?;
+            println!(
+                "{}: default guard {} (format {})",
+                file.display(),
+                describe(policy.manifest.default_guard),
+                policy.manifest.format_version
+            );
+        }
+        Ok(())
+    }
+}
+
+fn describe(guard: Option<Guard>) -> String {
+    match guard {
+        None => "none (the paper's test)".to_string(),
+        Some(g) => match (g.every_critic, g.support_limit > 0.0) {
+            (true, true) => format!("every critic, support limit {}", g.support_limit),
+            (true, false) => "every critic".to_string(),
+            (false, _) => format!("support limit {}", g.support_limit),
+        },
+    }
+}
