@@ -52,21 +52,10 @@ impl DefaultGuardArgs {
             println!(
                 "{}: default guard {} (format {})",
                 file.display(),
-                describe(policy.manifest.default_guard),
+                policy.manifest.default_guard.unwrap_or_default(),
                 policy.manifest.format_version
             );
         }
         Ok(())
-    }
-}
-
-fn describe(guard: Option<Guard>) -> String {
-    match guard {
-        None => "none (the paper's test)".to_string(),
-        Some(g) => match (g.every_critic, g.support_limit > 0.0) {
-            (true, true) => format!("every critic, support limit {}", g.support_limit),
-            (true, false) => "every critic".to_string(),
-            (false, _) => format!("support limit {}", g.support_limit),
-        },
     }
 }

@@ -87,6 +87,10 @@ fn describe(path: &Path, json: bool) -> anyhow::Result<String> {
         )),
         None => line("value scale  none (absolute eps only)".to_string()),
     }
+    line(format!(
+        "guard        {} (sessions that set none)",
+        m.default_guard.unwrap_or_default()
+    ));
     let p = &m.provenance;
     line(format!(
         "provenance   {} | {} steps | seed {} | {}",

@@ -114,6 +114,17 @@ impl Guard {
     }
 }
 
+impl std::fmt::Display for Guard {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match (self.every_critic, self.support_limit > 0.0) {
+            (true, true) => write!(f, "every critic, support limit {}", self.support_limit),
+            (true, false) => write!(f, "every critic"),
+            (false, true) => write!(f, "support limit {}", self.support_limit),
+            (false, false) => write!(f, "the paper's test"),
+        }
+    }
+}
+
 /// Per-session Replan settings, with eps already absolute.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ReplanConfig {

@@ -32,6 +32,7 @@ fn inspect_prints_the_manifest_and_a_forward_pass() {
         "obs_dim      3",
         "critics      2 x hidden [32, 32] Relu, Q = min of critics",
         "V_pi(s0) = 10, V_rand(s0) = -10",
+        "guard        the paper's test (sessions that set none)",
         "Q(s,pi(s))",
         "P(s,pi(s))",
         "sha256:",
@@ -115,6 +116,12 @@ async fn default_guard_sets_what_sessions_without_a_guard_get() {
     );
     drop(server);
 
+    let out = prac(&["inspect", file]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("guard        every critic, support limit 3 (sessions that set none)"),
+        "{text}"
+    );
     let out = prac(&["default-guard", file, "--none"]);
     assert!(out.status.success(), "{out:?}");
     let policy = prac::bundle::load(std::path::Path::new(file)).unwrap();
