@@ -108,12 +108,6 @@ pub struct Guard {
     pub support_limit: f32,
 }
 
-impl Guard {
-    pub fn is_off(&self) -> bool {
-        !self.every_critic && self.support_limit <= 0.0
-    }
-}
-
 impl std::fmt::Display for Guard {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match (self.every_critic, self.support_limit > 0.0) {

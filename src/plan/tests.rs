@@ -346,27 +346,28 @@ fn replan_alone(
     state: [f32; OBS],
     old: &Plan,
 ) -> ReplanOutcome {
-    let mut new = Plan::with_capacity(OBS, ACT, 40);
-    let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let job = ReplanJob {
+    // The same job for Replan and for the reference, each into its own plan.
+    let job = |new, rng| ReplanJob {
         config,
         state: &state,
         step: 5,
         old: old.tail(0),
-        new: &mut new,
-        rng: &mut rng,
+        new,
+        rng,
     };
-    let outcome = replan(nets, job, &mut ReplanScratch::new(OBS, ACT)).unwrap();
-    let mut expected = Plan::with_capacity(OBS, ACT, 40);
+    let (mut new, mut expected) = (
+        Plan::with_capacity(OBS, ACT, 40),
+        Plan::with_capacity(OBS, ACT, 40),
+    );
     let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let job = ReplanJob {
-        config,
-        state: &state,
-        step: 5,
-        old: old.tail(0),
-        new: &mut expected,
-        rng: &mut rng,
-    };
+    let outcome = replan(
+        nets,
+        job(&mut new, &mut rng),
+        &mut ReplanScratch::new(OBS, ACT),
+    )
+    .unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let job = job(&mut expected, &mut rng);
     assert_eq!(reference::reference_replan(nets, job), Ok(outcome));
     assert_eq!(new, expected);
     outcome

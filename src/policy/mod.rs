@@ -331,10 +331,6 @@ impl Networks for Evaluator {
     }
 
     fn policy_distance(&mut self, obs: &[f32], actions: &[f32], distance: &mut [f32]) {
-        if self.policy.actor.log_std.is_none() {
-            distance[..obs.len() / self.policy.obs_dim()].fill(f32::NAN);
-            return;
-        }
         let gaussian = self.run_actor(obs);
         self.distances(gaussian, actions, distance);
     }

@@ -225,7 +225,7 @@ fn a_guard_resolves_as_the_proto_says() {
     // Unset or empty: the paper's test, and the resolved options say so.
     for options in [with_guard(None), with_guard(Some(Default::default()))] {
         let settings = resolve(&options, &policy).unwrap();
-        assert!(settings.replan.guard.is_off());
+        assert_eq!(settings.replan.guard, crate::plan::Guard::default());
         assert_eq!(settings.to_proto().guard, Some(proto::PlanGuard::default()));
     }
     let guarded = with_guard(Some(proto::PlanGuard {
