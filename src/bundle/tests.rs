@@ -58,9 +58,9 @@ fn round_trip_preserves_every_output() {
     b.act(&obs, &[0.3, -1.0], &mut act_b);
     assert_eq!(act_a, act_b);
     let (mut qa, mut qb) = ([0.0], [0.0]);
-    a.q_pair(&obs, &act_a, &[0.5, 0.5], &mut qa, &mut qb);
+    a.q_pair(&obs, &act_a, &[0.5, 0.5], &mut qa, &mut qb, None);
     let (mut ra, mut rb) = ([0.0], [0.0]);
-    b.q_pair(&obs, &act_b, &[0.5, 0.5], &mut ra, &mut rb);
+    b.q_pair(&obs, &act_b, &[0.5, 0.5], &mut ra, &mut rb, None);
     assert_eq!((qa, qb), (ra, rb));
     let (mut na, mut nb) = ([0.0; 4], [0.0; 4]);
     a.predict_next(&obs, &act_a, &mut na);
@@ -570,8 +570,8 @@ fn a_normalising_bundle_feeds_its_actor_and_critics_normalised_observations_and_
     assert_eq!(a, b);
     let other = [0.2, -0.6];
     let (mut qa, mut qb, mut ra, mut rb) = ([0.0], [0.0], [0.0], [0.0]);
-    served.q_pair(&raw, &a, &other, &mut qa, &mut qb);
-    reference.q_pair(&seen, &a, &other, &mut ra, &mut rb);
+    served.q_pair(&raw, &a, &other, &mut qa, &mut qb, None);
+    reference.q_pair(&seen, &a, &other, &mut ra, &mut rb, None);
     assert_eq!((qa, qb), (ra, rb));
     let (mut next_a, mut next_b) = ([0.0; 4], [0.0; 4]);
     served.predict_next(&raw, &a, &mut next_a);

@@ -83,23 +83,18 @@ impl<N: Networks> Networks for Counting<N> {
         self.acts += (obs.len() / self.obs_dim()) as u64;
         self.inner.act(obs, noise, actions)
     }
-    fn q_pair(&mut self, obs: &[f32], a: &[f32], b: &[f32], q_a: &mut [f32], q_b: &mut [f32]) {
-        self.calls += 1;
-        self.qs += 2 * q_a.len() as u64;
-        self.inner.q_pair(obs, a, b, q_a, q_b)
-    }
-    fn q_pair_gap(
+    fn q_pair(
         &mut self,
         obs: &[f32],
         a: &[f32],
         b: &[f32],
         q_a: &mut [f32],
         q_b: &mut [f32],
-        largest_gap: &mut [f32],
+        largest_gap: Option<&mut [f32]>,
     ) {
         self.calls += 1;
         self.qs += 2 * q_a.len() as u64;
-        self.inner.q_pair_gap(obs, a, b, q_a, q_b, largest_gap)
+        self.inner.q_pair(obs, a, b, q_a, q_b, largest_gap)
     }
     fn policy_distance(&mut self, obs: &[f32], actions: &[f32], distance: &mut [f32]) {
         self.calls += 1;

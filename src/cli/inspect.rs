@@ -110,7 +110,7 @@ fn describe(path: &Path, json: bool) -> anyhow::Result<String> {
     let mut squashed = vec![0.0; m.act_dim];
     eval.act(&obs, &vec![0.0; m.act_dim], &mut squashed);
     let (mut q, mut same) = ([0.0], [0.0]);
-    eval.q_pair(&obs, &squashed, &squashed, &mut q, &mut same);
+    eval.q_pair(&obs, &squashed, &squashed, &mut q, &mut same, None);
     let q = q[0];
     let mut action = vec![0.0; m.act_dim];
     policy.unscale_action(&squashed, &mut action);

@@ -278,6 +278,7 @@ fn fall_trace(
         executed,
         &mut q_policy,
         &mut q_executed,
+        None,
     );
     let steps = (first..len)
         .enumerate()

@@ -25,26 +25,19 @@ pub trait Networks {
     /// normal, or zero for the deterministic `tanh(mu)`.
     fn act(&mut self, obs: &[f32], noise: &[f32], actions: &mut [f32]);
     /// Aggregated critic values of (obs, a) and (obs, b) per row: Replan's test compares two
-    /// actions at one state.
-    fn q_pair(&mut self, obs: &[f32], a: &[f32], b: &[f32], q_a: &mut [f32], q_b: &mut [f32]);
-    /// The dynamics model's predictions of the next observations.
-    fn predict_next(&mut self, obs: &[f32], actions: &[f32], next_obs: &mut [f32]);
-    /// [`Networks::q_pair`], and per row the largest gap any one critic sees:
-    /// `max_c (Q_c(obs, a) - Q_c(obs, b))`. A single critic's gap is `q_a - q_b`.
-    fn q_pair_gap(
+    /// actions at one state. Where `largest_gap` is given, also per row the largest gap any one
+    /// critic sees, `max_c (Q_c(obs, a) - Q_c(obs, b))` (the guard's `every_critic`).
+    fn q_pair(
         &mut self,
         obs: &[f32],
         a: &[f32],
         b: &[f32],
         q_a: &mut [f32],
         q_b: &mut [f32],
-        largest_gap: &mut [f32],
-    ) {
-        self.q_pair(obs, a, b, q_a, q_b);
-        for ((g, qa), qb) in largest_gap.iter_mut().zip(&*q_a).zip(&*q_b) {
-            *g = qa - qb;
-        }
-    }
+        largest_gap: Option<&mut [f32]>,
+    );
+    /// The dynamics model's predictions of the next observations.
+    fn predict_next(&mut self, obs: &[f32], actions: &[f32], next_obs: &mut [f32]);
     /// Per row, how far `actions` lie from the policy's Gaussian at `obs`: the largest
     /// [`support_distance`] over the action's dimensions. NaN for an actor without a Gaussian.
     fn policy_distance(&mut self, obs: &[f32], actions: &[f32], distance: &mut [f32]);
@@ -819,23 +812,15 @@ fn test_chunks<N: Networks, R: Rng>(
     // `noise` holds the policy's actions here (a reused buffer).
     if every_critic {
         crate::nn::resize(&mut s.largest_gap, rows);
-        nets.q_pair_gap(
-            &s.obs,
-            &s.noise,
-            &s.actions,
-            &mut s.q_policy,
-            &mut s.q_planned,
-            &mut s.largest_gap,
-        );
-    } else {
-        nets.q_pair(
-            &s.obs,
-            &s.noise,
-            &s.actions,
-            &mut s.q_policy,
-            &mut s.q_planned,
-        );
     }
+    nets.q_pair(
+        &s.obs,
+        &s.noise,
+        &s.actions,
+        &mut s.q_policy,
+        &mut s.q_planned,
+        every_critic.then_some(&mut s.largest_gap[..]),
+    );
     let mut row = 0;
     for (i, (job, st)) in jobs.iter_mut().zip(s.jobs.iter_mut()).enumerate() {
         if st.phase != Phase::Checking {

@@ -48,7 +48,7 @@ pub fn reference_replan<N: Networks, R: Rng>(
         if !pi.iter().all(|v| v.is_finite()) {
             return failed("actor", j);
         }
-        nets.q_pair_gap(&s, &pi, old.action(j), &mut q_pi, &mut q_a, &mut gap);
+        nets.q_pair(&s, &pi, old.action(j), &mut q_pi, &mut q_a, Some(&mut gap));
         if !q_pi[0].is_finite() || !q_a[0].is_finite() {
             return failed("critic", j);
         }

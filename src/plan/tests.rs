@@ -62,28 +62,23 @@ impl Networks for ClosedForm {
             *action = ((0.8 * o[0] - 0.5 * o[1]) + 0.3 * noise[k]).tanh();
         }
     }
-    fn q_pair(&mut self, obs: &[f32], a: &[f32], b: &[f32], q_a: &mut [f32], q_b: &mut [f32]) {
-        for k in 0..q_a.len() {
-            let [a1, a2] = self.critics(&obs[k * OBS..(k + 1) * OBS], a[k]);
-            let [b1, b2] = self.critics(&obs[k * OBS..(k + 1) * OBS], b[k]);
-            q_a[k] = a1.min(a2);
-            q_b[k] = b1.min(b2);
-        }
-    }
-    fn q_pair_gap(
+    fn q_pair(
         &mut self,
         obs: &[f32],
         a: &[f32],
         b: &[f32],
         q_a: &mut [f32],
         q_b: &mut [f32],
-        largest_gap: &mut [f32],
+        mut largest_gap: Option<&mut [f32]>,
     ) {
-        self.q_pair(obs, a, b, q_a, q_b);
         for k in 0..q_a.len() {
             let [a1, a2] = self.critics(&obs[k * OBS..(k + 1) * OBS], a[k]);
             let [b1, b2] = self.critics(&obs[k * OBS..(k + 1) * OBS], b[k]);
-            largest_gap[k] = (a1 - b1).max(a2 - b2);
+            q_a[k] = a1.min(a2);
+            q_b[k] = b1.min(b2);
+            if let Some(gap) = largest_gap.as_deref_mut() {
+                gap[k] = (a1 - b1).max(a2 - b2);
+            }
         }
     }
     fn policy_distance(&mut self, obs: &[f32], actions: &[f32], distance: &mut [f32]) {

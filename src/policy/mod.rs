@@ -314,20 +314,16 @@ impl Networks for Evaluator {
         }
     }
 
-    fn q_pair(&mut self, obs: &[f32], a: &[f32], b: &[f32], q_a: &mut [f32], q_b: &mut [f32]) {
-        self.q_values(obs, a, b, q_a, q_b, None);
-    }
-
-    fn q_pair_gap(
+    fn q_pair(
         &mut self,
         obs: &[f32],
         a: &[f32],
         b: &[f32],
         q_a: &mut [f32],
         q_b: &mut [f32],
-        largest_gap: &mut [f32],
+        largest_gap: Option<&mut [f32]>,
     ) {
-        self.q_values(obs, a, b, q_a, q_b, Some(largest_gap));
+        self.q_values(obs, a, b, q_a, q_b, largest_gap);
     }
 
     fn policy_distance(&mut self, obs: &[f32], actions: &[f32], distance: &mut [f32]) {
@@ -506,7 +502,7 @@ mod tests {
         evaluator.act(&obs, &vec![0.0; 3 * ad], &mut out[..3 * ad]);
         evaluator.predict_next(&obs[..2 * od], &actions[..2 * ad], &mut out[..2 * od]);
         let (mut q_a, mut q_b) = (vec![0.0; 3], vec![0.0; 3]);
-        evaluator.q_pair(&obs, &actions, &actions, &mut q_a, &mut q_b);
+        evaluator.q_pair(&obs, &actions, &actions, &mut q_a, &mut q_b, None);
         assert_eq!(
             evaluator.take_flops(),
             3 * actor + 2 * model + 2 * 3 * critic * critics
@@ -565,7 +561,7 @@ mod tests {
         let mut actions = vec![0.0; n * 2];
         eval.act(&obs, &noise, &mut actions);
         let (mut qa, mut qb) = (vec![0.0; n], vec![0.0; n]);
-        eval.q_pair(&obs, &actions, &other, &mut qa, &mut qb);
+        eval.q_pair(&obs, &actions, &other, &mut qa, &mut qb, None);
         let mut next = vec![0.0; n * 5];
         eval.predict_next(&obs, &actions, &mut next);
         for k in 0..n {
@@ -574,10 +570,10 @@ mod tests {
             eval.act(o, z, &mut a);
             assert_eq!(a, actions[k * 2..k * 2 + 2]);
             let (mut sa, mut sb) = ([0.0f32], [0.0f32]);
-            eval.q_pair(o, &a, &other[k * 2..k * 2 + 2], &mut sa, &mut sb);
+            eval.q_pair(o, &a, &other[k * 2..k * 2 + 2], &mut sa, &mut sb, None);
             assert_eq!((sa[0], sb[0]), (qa[k], qb[k]));
             // Q(s, a) at the same action in both slots is bitwise equal (the eps = 0 test).
-            eval.q_pair(o, &a, &a, &mut sa, &mut sb);
+            eval.q_pair(o, &a, &a, &mut sa, &mut sb, None);
             assert_eq!(sa, sb);
             let mut s_next = [0.0f32; 5];
             eval.predict_next(o, &a, &mut s_next);
@@ -598,9 +594,9 @@ mod tests {
         let a: Vec<f32> = (0..n * 2).map(|i| (i as f32 * 0.4).cos() * 0.9).collect();
         let b: Vec<f32> = (0..n * 2).map(|i| (i as f32 * 0.2).sin()).collect();
         let (mut qa, mut qb, mut gap) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
-        eval.q_pair_gap(&obs, &a, &b, &mut qa, &mut qb, &mut gap);
+        eval.q_pair(&obs, &a, &b, &mut qa, &mut qb, Some(&mut gap));
         let (mut pa, mut pb) = (vec![0.0; n], vec![0.0; n]);
-        eval.q_pair(&obs, &a, &b, &mut pa, &mut pb);
+        eval.q_pair(&obs, &a, &b, &mut pa, &mut pb, None);
         assert_eq!((&qa, &qb), (&pa, &pb));
         let mut distance = vec![0.0; n];
         eval.policy_distance(&obs, &b, &mut distance);

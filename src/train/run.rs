@@ -529,7 +529,7 @@ impl Trainer {
                 let zeros = vec![0.0; self.spec.act_dim];
                 evaluator.act(obs, &zeros, &mut pi);
                 let (mut q, mut q2) = ([0.0], [0.0]);
-                evaluator.q_pair(obs, &pi, &pi, &mut q, &mut q2);
+                evaluator.q_pair(obs, &pi, &pi, &mut q, &mut q2, None);
                 f64::from(q[0]) - v_rand_measured.unwrap_or(0.0)
             }
         };
