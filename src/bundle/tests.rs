@@ -503,11 +503,7 @@ fn actors_without_a_gaussian_head_act_tanh_of_the_clipped_mean_whatever_the_nois
 #[test]
 fn actor_kinds_need_format_2_and_a_clip_only_where_it_means_something() {
     use crate::manifest::ActorKind;
-    let reason = |policy: Policy| {
-        let json = serde_json::to_string(&policy.manifest).unwrap();
-        let e = load_error(&rebuild(&tensors(&policy), Some(&json)));
-        format!("{}: {}", e.field, e.reason)
-    };
+    let reason = load_reason;
     let mut old = without_log_std(ActorKind::Deterministic, None);
     old.manifest.format_version = 1;
     assert_eq!(
@@ -589,11 +585,7 @@ fn a_normalising_bundle_feeds_its_actor_and_critics_normalised_observations_and_
 
 #[test]
 fn a_bad_obs_normalization_is_named() {
-    let reason = |policy: Policy| {
-        let json = serde_json::to_string(&policy.manifest).unwrap();
-        let e = load_error(&rebuild(&tensors(&policy), Some(&json)));
-        format!("{}: {}", e.field, e.reason)
-    };
+    let reason = load_reason;
     let plain = small_policy();
     let mut old = normalized(&plain, vec_normalize());
     old.manifest.format_version = 1;
@@ -687,11 +679,7 @@ fn observation_bounds_round_trip_and_keep_every_prediction_inside() {
 #[test]
 fn bad_observation_bounds_are_named() {
     use crate::manifest::ObsBounds;
-    let reason = |policy: Policy| {
-        let json = serde_json::to_string(&policy.manifest).unwrap();
-        let e = load_error(&rebuild(&tensors(&policy), Some(&json)));
-        format!("{}: {}", e.field, e.reason)
-    };
+    let reason = load_reason;
     let plain = small_policy();
     let good = ObsBounds::from_limits(&[-1.0; 4], &[1.0; 4]);
     let mut old = bounded(&plain, good.clone());
@@ -727,11 +715,7 @@ fn guarded(policy: &Policy, guard: crate::plan::Guard) -> Policy {
 #[test]
 fn a_default_guard_round_trips_and_bad_ones_are_named() {
     use crate::plan::Guard;
-    let reason = |policy: Policy| {
-        let json = serde_json::to_string(&policy.manifest).unwrap();
-        let e = load_error(&rebuild(&tensors(&policy), Some(&json)));
-        format!("{}: {}", e.field, e.reason)
-    };
+    let reason = load_reason;
     let plain = small_policy();
     let guard = Guard {
         every_critic: true,
@@ -773,4 +757,11 @@ fn a_default_guard_round_trips_and_bad_ones_are_named() {
     // A bundle without one writes none.
     let json = serde_json::to_string(&plain.manifest).unwrap();
     assert!(!json.contains("default_guard"), "{json}");
+}
+
+/// The "field: reason" a loader gives for a bundle of this policy's tensors and manifest.
+fn load_reason(policy: Policy) -> String {
+    let json = serde_json::to_string(&policy.manifest).unwrap();
+    let e = load_error(&rebuild(&tensors(&policy), Some(&json)));
+    format!("{}: {}", e.field, e.reason)
 }
