@@ -5,10 +5,12 @@
 mod curves;
 mod play;
 mod sweep;
+mod table;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use anyhow::Context;
 use clap::{Parser, Subcommand};
 
 use play::Tol;
@@ -141,7 +143,8 @@ enum Command {
     },
     /// Training curves (return and forecast against steps) from `prac train` CSVs: every run
     /// into DIR/curves.png and, where NAME.train.csv and NAME-seedK.train.csv are seeds of one
-    /// setting, their mean and std across seeds into DIR/curves-seeds.png.
+    /// setting, their mean and std across seeds into DIR/curves-seeds.png. With --at, also
+    /// Figure 4's table into DIR/table.md.
     Curves {
         #[arg(long, value_delimiter = ',', required = true)]
         csv: Vec<PathBuf>,
@@ -150,6 +153,15 @@ enum Command {
         normalize: Option<String>,
         #[arg(long)]
         out: PathBuf,
+        /// Training steps for DIR/table.md: per run, the return of the last 20 episodes ended by
+        /// each and its ratio to plain SAC of the same seed, the forecast, episodes that ended
+        /// early, the last evaluation (NAME.eval.csv) and wall seconds per 1,000 steps.
+        #[arg(long, value_delimiter = ',', value_name = "STEPS")]
+        at: Vec<u64>,
+        /// The runs' domain, whose step limit tells which training episodes ended early
+        /// [default: the CSVs' folder name, where it names a domain].
+        #[arg(long)]
+        domain: Option<String>,
     },
 }
 
@@ -175,6 +187,38 @@ fn parse_pair(text: &str) -> anyhow::Result<(f64, f64)> {
     Ok((a, b))
 }
 
+/// Figure 4's table of the runs `csvs` at the steps `at` into DIR/table.md.
+fn write_table(
+    csvs: &[PathBuf],
+    at: &[u64],
+    domain: Option<&str>,
+    dir: &std::path::Path,
+) -> anyhow::Result<PathBuf> {
+    let folder = csvs[0]
+        .parent()
+        .and_then(|p| p.file_name())
+        .and_then(|n| n.to_str());
+    let episode_len = match domain {
+        Some(name) => Some(
+            prac::domains::make(name)
+                .with_context(|| {
+                    format!("--domain: no domain '{name}' (`prac domains` lists them)")
+                })?
+                .spec()
+                .episode_len,
+        ),
+        None => folder
+            .and_then(prac::domains::make)
+            .map(|env| env.spec().episode_len),
+    };
+    let at: Vec<f64> = at.iter().map(|&x| x as f64).collect();
+    let runs = table::summarise_all(csvs, &at, episode_len)?;
+    let path = dir.join("table.md");
+    std::fs::write(&path, table::markdown(&runs, &at))
+        .with_context(|| format!("writing {}", path.display()))?;
+    Ok(path)
+}
+
 /// The policy's description, waiting for a starting server; a local server's own last words
 /// come with the error.
 async fn served_policy(
@@ -192,11 +236,16 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
         csv,
         normalize,
         out,
+        at,
+        domain,
     } = &cli.command
     {
         let normalize = normalize.as_deref().map(parse_pair).transpose()?;
-        let (summary, written) = curves::write(csv, normalize, out)?;
+        let (summary, mut written) = curves::write(csv, normalize, out)?;
         print!("{summary}");
+        if !at.is_empty() {
+            written.push(write_table(csv, at, domain.as_deref(), out)?);
+        }
         for path in written {
             println!("wrote {}", path.display());
         }
