@@ -431,8 +431,12 @@ struct JobState {
     broke_at: Option<usize>,
     wanted: usize,
     appended: usize,
-    /// pi(s) at the breaking state is drawn already and opens the extension.
+    /// pi(s) at the breaking state, or at the state after a plan kept whole, is drawn already
+    /// and opens the extension.
     have_policy_action: bool,
+    /// This round's actor call also draws pi at the state after the chunk: the chunk ends the
+    /// old plan, so if every action in it is kept, that is the extension's first action.
+    policy_after_chunk: bool,
     error: Option<NonFinite>,
     /// Size of the next chunk of old actions to test.
     chunk: usize,
@@ -561,6 +565,7 @@ pub fn replan_batch<N: Networks, R: Rng + Clone>(
             wanted: 0,
             appended: 0,
             have_policy_action: false,
+            policy_after_chunk: false,
             error: None,
             chunk: FIRST_CHUNK,
             testing: 0,
@@ -596,14 +601,18 @@ pub fn replan_batch<N: Networks, R: Rng + Clone>(
     }
 }
 
-fn start_extending<R>(job: &ReplanJob<'_, R>, st: &mut JobState) {
-    let kept = job.new.len();
-    let max_horizon = job.config.max_horizon.max(1);
-    let wanted = match job.config.growth {
+/// How many policy actions a plan of `kept` old actions is extended by.
+fn wanted_after(config: &ReplanConfig, kept: usize) -> usize {
+    let max_horizon = config.max_horizon.max(1);
+    let wanted = match config.growth {
         Growth::Grow(k) => k.max(1),
         Growth::Fixed(n) => n.max(1).saturating_sub(kept),
     };
-    st.wanted = wanted.min(max_horizon - kept);
+    wanted.min(max_horizon.saturating_sub(kept))
+}
+
+fn start_extending<R>(job: &ReplanJob<'_, R>, st: &mut JobState) {
+    st.wanted = wanted_after(&job.config, job.new.len());
     st.phase = if st.wanted == 0 {
         Phase::Done
     } else {
@@ -629,6 +638,7 @@ fn roll_chunks<N: Networks, R>(nets: &mut N, jobs: &[ReplanJob<'_, R>], s: &mut 
         }
         st.testing = (st.limit - st.checked).min(st.chunk);
         st.chunk = (st.chunk * 2).min(MAX_CHUNK);
+        st.policy_after_chunk = false;
         st.first_row = rows;
         st.finite_states = st.testing + 1;
         rows += st.testing + 1;
@@ -670,6 +680,12 @@ fn roll_chunks<N: Networks, R>(nets: &mut N, jobs: &[ReplanJob<'_, R>], s: &mut 
             s.chunk_states[at..at + od].copy_from_slice(next);
         }
     }
+    for (job, st) in jobs.iter().zip(s.jobs.iter_mut()) {
+        st.policy_after_chunk = st.testing > 0
+            && st.checked + st.testing == st.limit
+            && st.finite_states == st.testing + 1
+            && wanted_after(&job.config, job.new.len() + st.testing) > 0;
+    }
 }
 
 /// Rows of the chunk whose states are finite.
@@ -700,13 +716,17 @@ fn draw_policy_actions<N: Networks, R: Rng + Clone>(
     for (i, (job, st)) in jobs.iter_mut().zip(&s.jobs).enumerate() {
         match st.phase {
             Phase::Checking => {
-                let rows = chunk_rows(st);
+                let tested = chunk_rows(st);
+                let rows = tested + usize::from(st.policy_after_chunk);
                 let at = st.first_row * od;
                 s.obs.extend_from_slice(&s.chunk_states[at..at + rows * od]);
                 if support {
-                    for m in 0..rows {
+                    for m in 0..tested {
                         s.actions.extend_from_slice(job.old.action(st.checked + m));
                     }
+                    // The state after the chunk has no old action (its distance is unused).
+                    s.actions
+                        .extend(std::iter::repeat_n(0.0, (rows - tested) * ad));
                 }
                 let mut ahead = job.rng.clone();
                 for _ in 0..rows * ad {
@@ -752,7 +772,7 @@ fn draw_policy_actions<N: Networks, R: Rng + Clone>(
         let i = s.rows[r];
         let st = &mut s.jobs[i];
         if st.phase == Phase::Checking {
-            let rows = chunk_rows(st);
+            let rows = chunk_rows(st) + usize::from(st.policy_after_chunk);
             let at = st.first_row * ad;
             s.chunk_policy[at..at + rows * ad].copy_from_slice(&s.out[r * ad..(r + rows) * ad]);
             if support {
@@ -889,6 +909,19 @@ fn test_chunks<N: Networks, R: Rng>(
             job.new.push(job.old.action(j), next, job.old.decided_at(j));
             s.states[i * od..(i + 1) * od].copy_from_slice(next);
             st.checked += 1;
+        }
+        if st.policy_after_chunk && st.phase == Phase::Checking && st.checked == st.limit {
+            // The whole old plan was kept: pi at the state after it opens the extension, drawn
+            // with the next draws, as the extension would have drawn it.
+            used += 1;
+            let row = st.first_row + st.testing;
+            let pi = &s.chunk_policy[row * ad..(row + 1) * ad];
+            if all_finite(pi) {
+                st.have_policy_action = true;
+                s.policy_actions[i * ad..(i + 1) * ad].copy_from_slice(pi);
+            } else {
+                fail(st, "actor", job.new.len());
+            }
         }
         if job.config.sampled {
             // Take from the rng the draws one-at-a-time testing would have taken.

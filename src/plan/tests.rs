@@ -631,6 +631,88 @@ fn a_batch_gives_each_session_what_it_gets_alone() {
     assert!(saw_break);
 }
 
+/// The networks of `nets`, counting the actor's passes.
+struct CountingActor {
+    nets: ClosedForm,
+    passes: usize,
+}
+
+impl Networks for CountingActor {
+    fn obs_dim(&self) -> usize {
+        self.nets.obs_dim()
+    }
+    fn act_dim(&self) -> usize {
+        self.nets.act_dim()
+    }
+    fn act(&mut self, obs: &[f32], noise: &[f32], actions: &mut [f32]) {
+        self.passes += 1;
+        self.nets.act(obs, noise, actions);
+    }
+    fn q_pair(
+        &mut self,
+        obs: &[f32],
+        a: &[f32],
+        b: &[f32],
+        q_a: &mut [f32],
+        q_b: &mut [f32],
+        largest_gap: Option<&mut [f32]>,
+    ) {
+        self.nets.q_pair(obs, a, b, q_a, q_b, largest_gap);
+    }
+    fn predict_next(&mut self, obs: &[f32], actions: &[f32], next_obs: &mut [f32]) {
+        self.nets.predict_next(obs, actions, next_obs);
+    }
+    fn policy_distance(&mut self, obs: &[f32], actions: &[f32], distance: &mut [f32]) {
+        self.nets.policy_distance(obs, actions, distance);
+    }
+}
+
+#[test]
+fn a_plan_kept_whole_draws_its_first_new_action_in_the_tests_actor_pass() {
+    // (max horizon, old actions, actor passes): the test's pass also draws pi at the state after
+    // the old plan, so appending k = 2 actions takes one more pass, not two; a plan already at
+    // its cap appends nothing and takes the test's pass alone; an empty old plan has no test.
+    for (cap, old_len, passes) in [(32, 5, 2), (32, 8, 2), (6, 6, 1), (32, 0, 2)] {
+        let mut nets = CountingActor {
+            nets: ClosedForm::exact(),
+            passes: 0,
+        };
+        let mut old = Plan::with_capacity(OBS, ACT, 64);
+        for j in 0..old_len {
+            old.push(&[0.1 * j as f32], &[0.0, 0.0], j as u64);
+        }
+        let config = huge_eps(Growth::Grow(2), cap);
+        let mut new = Plan::with_capacity(OBS, ACT, 64);
+        let outcome = replan(
+            &mut nets,
+            ReplanJob {
+                config,
+                state: &[0.3, -0.2],
+                step: 9,
+                old: old.tail(0),
+                new: &mut new,
+                rng: &mut ChaCha8Rng::seed_from_u64(0),
+            },
+            &mut ReplanScratch::new(OBS, ACT),
+        )
+        .unwrap();
+        assert_eq!(outcome.kept, old_len.min(cap), "cap {cap}, {old_len} old");
+        assert_eq!(outcome.appended, 2.min(cap - outcome.kept));
+        assert_eq!(nets.passes, passes, "cap {cap}, {old_len} old");
+        // The first new action is pi at the model's state after the kept ones.
+        if outcome.appended > 0 {
+            let after = match outcome.kept {
+                0 => [0.3, -0.2],
+                k => {
+                    let s = new.next_obs(k - 1);
+                    [s[0], s[1]]
+                }
+            };
+            assert_eq!(new.action(outcome.kept)[0], ClosedForm::mean_action(&after));
+        }
+    }
+}
+
 #[test]
 fn chunked_batched_replan_matches_the_plain_algorithm() {
     use rand::Rng;
