@@ -187,11 +187,13 @@ fn parse_pair(text: &str) -> anyhow::Result<(f64, f64)> {
     Ok((a, b))
 }
 
-/// Figure 4's table of the runs `csvs` at the steps `at` into DIR/table.md.
+/// Figure 4's table of the runs `csvs` at the steps `at` (returns normalised where asked) into
+/// DIR/table.md.
 fn write_table(
     csvs: &[PathBuf],
     at: &[u64],
     domain: Option<&str>,
+    normalize: Option<(f64, f64)>,
     dir: &std::path::Path,
 ) -> anyhow::Result<PathBuf> {
     let folder = csvs[0]
@@ -214,7 +216,7 @@ fn write_table(
     let at: Vec<f64> = at.iter().map(|&x| x as f64).collect();
     let runs = table::summarise_all(csvs, &at, episode_len)?;
     let path = dir.join("table.md");
-    std::fs::write(&path, table::markdown(&runs, &at))
+    std::fs::write(&path, table::markdown(&runs, &at, normalize))
         .with_context(|| format!("writing {}", path.display()))?;
     Ok(path)
 }
@@ -244,7 +246,7 @@ async fn run(cli: Cli) -> anyhow::Result<()> {
         let (summary, mut written) = curves::write(csv, normalize, out)?;
         print!("{summary}");
         if !at.is_empty() {
-            written.push(write_table(csv, at, domain.as_deref(), out)?);
+            written.push(write_table(csv, at, domain.as_deref(), normalize, out)?);
         }
         for path in written {
             println!("wrote {}", path.display());

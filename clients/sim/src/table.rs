@@ -75,8 +75,9 @@ pub struct RunSummary {
     pub episodes: usize,
     /// Episodes shorter than the domain's step limit (a fall, or a lander's landing or crash).
     pub ended_early: Option<usize>,
-    /// The last evaluation: its step, mean return and episodes that ended early.
-    pub final_eval: Option<(f64, f64, f64)>,
+    /// The last evaluation: its step, mean return and episodes that ended early (where its CSV
+    /// records them).
+    pub final_eval: Option<(f64, f64, Option<f64>)>,
     /// Median wall seconds per 1,000 steps over the evaluation intervals.
     pub seconds_per_1k: Option<f64>,
 }
@@ -126,17 +127,20 @@ pub fn summarise(train: &Path, at: &[f64], episode_len: Option<u32>) -> anyhow::
         Some(e) if !e.rows.is_empty() => {
             let s = e.column(&eval_path, "step")?;
             let mean = e.column(&eval_path, "eval_return_mean")?;
-            let ended = e.column(&eval_path, "eval_terminated")?;
-            let seconds = e.column(&eval_path, "seconds")?;
+            // Older evaluation CSVs have neither column.
+            let ended = e.column(&eval_path, "eval_terminated").ok();
+            let seconds = e.column(&eval_path, "seconds").ok();
             let last = s.len() - 1;
             // Intervals across a resume restart the clock (a negative difference): skipped.
-            let rates = (1..s.len())
-                .filter(|&i| s[i] > s[i - 1] && seconds[i] >= seconds[i - 1])
-                .map(|i| (seconds[i] - seconds[i - 1]) / (s[i] - s[i - 1]) * 1000.0)
-                .collect();
+            let rates = seconds.map_or_else(Vec::new, |seconds| {
+                (1..s.len())
+                    .filter(|&i| s[i] > s[i - 1] && seconds[i] >= seconds[i - 1])
+                    .map(|i| (seconds[i] - seconds[i - 1]) / (s[i] - s[i - 1]) * 1000.0)
+                    .collect()
+            });
             (
                 s.clone(),
-                Some((s[last], mean[last], ended[last])),
+                Some((s[last], mean[last], ended.map(|e| e[last]))),
                 median(rates),
             )
         }
@@ -194,20 +198,31 @@ fn joined(values: impl Iterator<Item = String>) -> String {
 
 /// The markdown table of `runs` at the steps `at`: one row per run (plain SAC's settings first,
 /// then by setting and seed), then one per setting with several seeds: the mean over the seeds
-/// that reached each step, against plain SAC's mean over the same seeds.
-pub fn markdown(runs: &[RunSummary], at: &[f64]) -> String {
+/// that reached each step, against plain SAC's mean over the same seeds. With `normalize`
+/// (R_RAND, R_REF) training returns are shown normalised, so that ratios stay meaningful for a
+/// domain whose returns can be negative; a ratio needs plain SAC's (normalised) return above 0.
+pub fn markdown(runs: &[RunSummary], at: &[f64], normalize: Option<(f64, f64)>) -> String {
+    let scale = |v: f64| normalize.map_or(v, |(rand, reference)| (v - rand) / (reference - rand));
+    let number = |v: Option<f64>| match (v, normalize) {
+        (None, _) => "-".to_string(),
+        (Some(v), None) => thousands(v),
+        (Some(v), Some(_)) => format!("{:.3}", scale(v)),
+    };
+    let (what, eval_return) = match normalize {
+        Some(_) => ("normalised training return", "return (not normalised)"),
+        None => ("training return", "return"),
+    };
     let mut runs: Vec<&RunSummary> = runs.iter().collect();
     runs.sort_by(|a, b| {
         (!a.plain_sac, &a.setting, a.seed).cmp(&(!b.plain_sac, &b.setting, b.seed))
     });
     let at_label = joined(at.iter().map(|&x| steps_label(x)));
     let mut out = format!(
-        "| run | steps | training return at {at_label} (last {WINDOW} episodes) | relative to plain SAC of its seed | forecast (last {WINDOW} episodes) | training episodes ended early | last evaluation: step, return, ended early | wall s per 1,000 steps (median) |\n|---|---:|---|---|---:|---:|---|---:|\n"
+        "| run | steps | {what} at {at_label} (last {WINDOW} episodes) | relative to plain SAC of its seed | forecast (last {WINDOW} episodes) | training episodes ended early | last evaluation: step, {eval_return}, ended early | wall s per 1,000 steps (median) |\n|---|---:|---|---|---:|---:|---|---:|\n"
     );
     let plain = |seed: u64| runs.iter().find(|r| r.plain_sac && r.seed == seed);
-    let number = |v: Option<f64>| v.map_or("-".to_string(), thousands);
-    let ratio = |v: Option<f64>, base: Option<f64>| match (v, base) {
-        (Some(v), Some(b)) if b != 0.0 => format!("{:.2}", v / b),
+    let ratio = |v: Option<f64>, base: Option<f64>| match (v.map(scale), base.map(scale)) {
+        (Some(v), Some(b)) if b > 0.0 => format!("{:.2}", v / b),
         _ => "-".to_string(),
     };
     for run in &runs {
@@ -219,7 +234,8 @@ pub fn markdown(runs: &[RunSummary], at: &[f64]) -> String {
                 .map(|(i, &v)| ratio(v, base.and_then(|b| b.returns_at[i]))),
         );
         let eval = run.final_eval.map_or("-".to_string(), |(s, r, e)| {
-            format!("{}, {:.1}, {e:.0}", steps_label(s), r)
+            let ended = e.map_or("-".to_string(), |e| format!("{e:.0}"));
+            format!("{}, {:.1}, {ended}", steps_label(s), r)
         });
         out.push_str(&format!(
             "| {} | {} | {} | {relative} | {:.2} | {} | {eval} | {} |\n",
@@ -339,7 +355,7 @@ mod tests {
         assert_eq!(run.steps, 2400.0);
         assert_eq!(run.returns_at[2], None);
         assert_eq!(run.forecast, 1.0);
-        assert_eq!(run.final_eval, Some((2400.0, 9.0, 0.0)));
+        assert_eq!(run.final_eval, Some((2400.0, 9.0, Some(0.0))));
         // 20, 5 and 45 s per 1,000 steps between evaluations: the median is 20.
         assert_eq!(run.seconds_per_1k, Some(20.0));
     }
@@ -358,7 +374,7 @@ mod tests {
         assert_eq!(runs[3].seed, 1);
         assert!(!runs[2].plain_sac);
         assert_eq!(runs[3].returns_at, vec![Some(110.0), None]);
-        let table = markdown(&runs, &at);
+        let table = markdown(&runs, &at, None);
         let row = |name: &str| {
             table
                 .lines()
@@ -402,6 +418,44 @@ mod tests {
                 "| fig4-prac-0.01-seed1"
             ]
         );
+    }
+
+    #[test]
+    fn an_older_evaluation_csv_without_falls_or_time_still_gives_its_return() {
+        let dir = tempfile::tempdir().unwrap();
+        let train = write_run(dir.path(), "lander", 30, 1.0, 0.0);
+        std::fs::write(
+            dir.path().join("lander.eval.csv"),
+            "step,eval_return_mean,eval_return_std\n1000,-5,1\n2000,7.5,2\n",
+        )
+        .unwrap();
+        let run = summarise(&train, &[1000.0], Some(100)).unwrap();
+        assert_eq!(run.final_eval, Some((2000.0, 7.5, None)));
+        assert_eq!(run.seconds_per_1k, None);
+        let table = markdown(&[run], &[1000.0], None);
+        assert!(table.contains("| 2k, 7.5, - | - |"), "{table}");
+    }
+
+    #[test]
+    fn normalised_returns_keep_ratios_meaningful_where_returns_are_negative() {
+        let dir = tempfile::tempdir().unwrap();
+        // Plain SAC returns index * -1 (0 down to -29), PrAC index * -2: both below zero.
+        let csvs = vec![
+            write_run(dir.path(), "lander", 30, -1.0, 0.0),
+            write_run(dir.path(), "lander-prac-0.01", 30, -2.0, 0.5),
+        ];
+        let runs = summarise_all(&csvs, &[1000.0], None).unwrap();
+        // Raw, plain SAC's mean is -5.5: no ratio.
+        let raw = markdown(&runs, &[1000.0], None);
+        assert!(raw.contains("| -6 | - |"), "{raw}");
+        // Normalised with R_RAND -100, R_REF 200: 94.5 / 300 and 89 / 300, ratio 0.94.
+        let table = markdown(&runs, &[1000.0], Some((-100.0, 200.0)));
+        assert!(
+            table.contains("normalised training return at 1k"),
+            "{table}"
+        );
+        assert!(table.contains("| 0.315 | 1.00 |"), "{table}");
+        assert!(table.contains("| 0.297 | 0.94 |"), "{table}");
     }
 
     #[test]
