@@ -420,8 +420,12 @@ enum Phase {
 /// chunk as one batch; work past a break is wasted. 8 covers a trained policy's usual plan (about
 /// 6 old actions per step for Hopper at coefficient 0.005) in one round.
 const FIRST_CHUNK: usize = 8;
-/// The largest chunk: an evaluator sized for this many rows per session never grows.
+/// The largest chunk.
 pub const MAX_CHUNK: usize = 32;
+/// The most states one session puts in one network call: a chunk of old actions and the state
+/// after it (whose pi opens the extension when the chunk is kept whole). An evaluator sized for
+/// this many rows per session never grows.
+pub const MAX_ROWS_PER_SESSION: usize = MAX_CHUNK + 1;
 
 #[derive(Clone, Debug)]
 struct JobState {
@@ -484,7 +488,7 @@ impl ReplanScratch {
 
     /// Scratch whose buffers fit batches of up to `jobs` sessions without growing.
     pub fn with_capacity(obs_dim: usize, act_dim: usize, jobs: usize) -> ReplanScratch {
-        let rows = jobs * (MAX_CHUNK + 1);
+        let rows = jobs * MAX_ROWS_PER_SESSION;
         ReplanScratch {
             obs_dim,
             act_dim,
@@ -638,7 +642,6 @@ fn roll_chunks<N: Networks, R>(nets: &mut N, jobs: &[ReplanJob<'_, R>], s: &mut 
         }
         st.testing = (st.limit - st.checked).min(st.chunk);
         st.chunk = (st.chunk * 2).min(MAX_CHUNK);
-        st.policy_after_chunk = false;
         st.first_row = rows;
         st.finite_states = st.testing + 1;
         rows += st.testing + 1;
@@ -694,9 +697,9 @@ fn chunk_rows(st: &JobState) -> usize {
 }
 
 /// pi(s) for every state that needs it this round, in one actor call: the chunk states of
-/// checking jobs (noise drawn from a copy of the job's rng: only the draws a one-at-a-time test
-/// would make are taken from the rng itself, in `test_chunks`) and the current state of
-/// extending jobs.
+/// checking jobs, with the state after the chunk where it ends the old plan (noise drawn from a
+/// copy of the job's rng: only the draws a one-at-a-time test would make are taken from the rng
+/// itself, in `test_chunks`), and the current state of extending jobs.
 fn draw_policy_actions<N: Networks, R: Rng + Clone>(
     nets: &mut N,
     jobs: &mut [ReplanJob<'_, R>],
@@ -919,6 +922,8 @@ fn test_chunks<N: Networks, R: Rng>(
             if all_finite(pi) {
                 st.have_policy_action = true;
                 s.policy_actions[i * ad..(i + 1) * ad].copy_from_slice(pi);
+                // As after a break: this round's `extend` appends it.
+                start_extending(job, st);
             } else {
                 fail(st, "actor", job.new.len());
             }

@@ -5,7 +5,7 @@ use std::sync::Arc;
 
 use crate::manifest::{Manifest, Normalization, ObsNormalization, QAggregation};
 use crate::nn::{Dense, Mlp, MlpScratch, resize};
-use crate::plan::{MAX_CHUNK, Networks, support_distance};
+use crate::plan::{MAX_ROWS_PER_SESSION, Networks, support_distance};
 
 /// SB3 clamps log_std to this range.
 pub(crate) const LOG_STD_MIN: f32 = -20.0;
@@ -149,9 +149,9 @@ impl Evaluator {
     }
 
     /// An evaluator for Replan over up to `sessions` sessions at once: it never grows (Replan
-    /// evaluates at most [`MAX_CHUNK`] states per session in one call).
+    /// evaluates at most [`MAX_ROWS_PER_SESSION`] states per session in one call).
     pub fn for_sessions(policy: Arc<Policy>, sessions: usize) -> Evaluator {
-        Evaluator::with_capacity(policy, sessions * MAX_CHUNK)
+        Evaluator::with_capacity(policy, sessions * MAX_ROWS_PER_SESSION)
     }
 
     /// An evaluator whose buffers fit batches of up to `rows` states without growing.

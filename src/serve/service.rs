@@ -23,7 +23,7 @@ use super::session::{
     new_session_id,
 };
 use super::workspace::{Workspace, Workspaces};
-use crate::plan::MAX_CHUNK;
+use crate::plan::MAX_ROWS_PER_SESSION;
 use crate::policy::Policy;
 use crate::proto::{self, prac_server::Prac};
 
@@ -263,7 +263,7 @@ impl ServerState {
         // Alone or without batching, each thread keeps one workspace per policy for the sessions
         // it serves.
         thread_local! {
-            static INLINE: RefCell<Workspaces> = RefCell::new(Workspaces::new(MAX_CHUNK, 1));
+            static INLINE: RefCell<Workspaces> = RefCell::new(Workspaces::new(MAX_ROWS_PER_SESSION, 1));
         }
         INLINE.with_borrow_mut(|inline| {
             let Workspace { evaluator, scratch } = inline.get(&slot.policy);
