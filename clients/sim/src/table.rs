@@ -9,17 +9,18 @@ use anyhow::{Context, bail};
 
 use crate::curves::{WINDOW, setting_of};
 
-/// Named numeric columns of a CSV with a header row.
+/// Named numeric columns of a CSV with a header row. A cell may be empty: `prac train` leaves
+/// a value out where it has none (a lander's distance) and where an older CSV was widened.
 struct Columns {
     header: Vec<String>,
-    rows: Vec<Vec<f64>>,
+    rows: Vec<Vec<Option<f64>>>,
 }
 
 impl Columns {
     fn read(path: &Path) -> anyhow::Result<Columns> {
         let text =
             std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-        let mut lines = text.lines();
+        let mut lines = text.lines().filter(|line| !line.trim().is_empty());
         let header: Vec<String> = lines
             .next()
             .with_context(|| format!("{}: an empty CSV", path.display()))?
@@ -28,9 +29,12 @@ impl Columns {
             .collect();
         let mut rows = Vec::new();
         for (i, line) in lines.enumerate() {
-            let row: Vec<f64> = line
+            let row: Vec<Option<f64>> = line
                 .split(',')
-                .map(|v| v.parse::<f64>())
+                .map(|v| match v.trim() {
+                    "" => Ok(None),
+                    v => v.parse::<f64>().map(Some),
+                })
                 .collect::<Result<_, _>>()
                 .with_context(|| format!("{}: row {} is not all numbers", path.display(), i + 2))?;
             if row.len() != header.len() {
@@ -47,13 +51,24 @@ impl Columns {
         Ok(Columns { header, rows })
     }
 
+    /// A column's cells, where the CSV has it.
+    fn cells(&self, name: &str) -> Option<Vec<Option<f64>>> {
+        let at = self.header.iter().position(|h| h == name)?;
+        Some(self.rows.iter().map(|r| r[at]).collect())
+    }
+
+    /// A column every row must fill.
     fn column(&self, path: &Path, name: &str) -> anyhow::Result<Vec<f64>> {
-        let at = self
-            .header
-            .iter()
-            .position(|h| h == name)
+        let cells = self
+            .cells(name)
             .with_context(|| format!("{}: no '{name}' column", path.display()))?;
-        Ok(self.rows.iter().map(|r| r[at]).collect())
+        cells
+            .iter()
+            .enumerate()
+            .map(|(i, v)| {
+                v.with_context(|| format!("{}: row {}: no '{name}'", path.display(), i + 2))
+            })
+            .collect()
     }
 }
 
@@ -63,7 +78,7 @@ pub struct RunSummary {
     pub name: String,
     pub setting: String,
     pub seed: u64,
-    /// Every episode ran with eps 0: plain SAC.
+    /// Every episode ran with eps 0 and a forecast of 1: plain SAC.
     pub plain_sac: bool,
     /// The last step the run recorded (an episode's end or an evaluation).
     pub steps: f64,
@@ -118,6 +133,15 @@ pub fn summarise(train: &Path, at: &[f64], episode_len: Option<u32>) -> anyhow::
     if steps.is_empty() {
         bail!("{}: no episodes", train.display());
     }
+    if let Some(i) = steps.windows(2).position(|w| w[1] < w[0]) {
+        bail!(
+            "{}: row {}: steps go back ({} after {})",
+            train.display(),
+            i + 3,
+            steps[i + 1],
+            steps[i]
+        );
+    }
     let eval_path = train.with_file_name(format!("{name}.eval.csv"));
     let eval = match eval_path.exists() {
         true => Some(Columns::read(&eval_path)?),
@@ -127,20 +151,22 @@ pub fn summarise(train: &Path, at: &[f64], episode_len: Option<u32>) -> anyhow::
         Some(e) if !e.rows.is_empty() => {
             let s = e.column(&eval_path, "step")?;
             let mean = e.column(&eval_path, "eval_return_mean")?;
-            // Older evaluation CSVs have neither column.
-            let ended = e.column(&eval_path, "eval_terminated").ok();
-            let seconds = e.column(&eval_path, "seconds").ok();
+            // Older evaluations recorded neither (no column, or empty cells once widened).
+            let none = vec![None; s.len()];
+            let ended = e.cells("eval_terminated").unwrap_or_else(|| none.clone());
+            let seconds = e.cells("seconds").unwrap_or(none);
             let last = s.len() - 1;
             // Intervals across a resume restart the clock (a negative difference): skipped.
-            let rates = seconds.map_or_else(Vec::new, |seconds| {
-                (1..s.len())
-                    .filter(|&i| s[i] > s[i - 1] && seconds[i] >= seconds[i - 1])
-                    .map(|i| (seconds[i] - seconds[i - 1]) / (s[i] - s[i - 1]) * 1000.0)
-                    .collect()
-            });
+            let rates = (1..s.len())
+                .filter_map(|i| {
+                    let (from, to) = (seconds[i - 1]?, seconds[i]?);
+                    (s[i] > s[i - 1] && to >= from)
+                        .then(|| (to - from) / (s[i] - s[i - 1]) * 1000.0)
+                })
+                .collect();
             (
                 s.clone(),
-                Some((s[last], mean[last], ended.map(|e| e[last]))),
+                Some((s[last], mean[last], ended[last])),
                 median(rates),
             )
         }
@@ -161,7 +187,9 @@ pub fn summarise(train: &Path, at: &[f64], episode_len: Option<u32>) -> anyhow::
     Ok(RunSummary {
         setting: setting_of(&name).to_string(),
         seed: seed_of(&name),
-        plain_sac: epsilons.iter().all(|&e| e == 0.0),
+        // eps 0 alone does not make plain SAC: a critic below V_rand gives eps 0 too, and plans
+        // can still hold; plain SAC's plans are one action long.
+        plain_sac: epsilons.iter().all(|&e| e == 0.0) && forecasts.iter().all(|&f| f == 1.0),
         steps: last_step,
         returns_at,
         forecast: window_mean(&forecasts, forecasts.len()),
@@ -426,7 +454,7 @@ mod tests {
         let train = write_run(dir.path(), "lander", 30, 1.0, 0.0);
         std::fs::write(
             dir.path().join("lander.eval.csv"),
-            "step,eval_return_mean,eval_return_std\n1000,-5,1\n2000,7.5,2\n",
+            "step,eval_return_mean,eval_return_std\n1000,-5,1\n\n2000,7.5,2\n",
         )
         .unwrap();
         let run = summarise(&train, &[1000.0], Some(100)).unwrap();
@@ -434,6 +462,20 @@ mod tests {
         assert_eq!(run.seconds_per_1k, None);
         let table = markdown(&[run], &[1000.0], None);
         assert!(table.contains("| 2k, 7.5, - | - |"), "{table}");
+        // Widened by a resumed run: empty cells before, values after; a distance it never had.
+        std::fs::write(
+            dir.path().join("lander.eval.csv"),
+            "step,eval_return_mean,eval_return_std,eval_discounted_mean,eval_terminated,eval_distance_mean,seconds\n\
+             1000,-5,1,0,,,\n2000,7.5,2,0,,,\n3000,9,2,0,1,,50\n4000,9.5,2,0,0,,80\n",
+        )
+        .unwrap();
+        let run = summarise(&train, &[1000.0], Some(100)).unwrap();
+        assert_eq!(run.final_eval, Some((4000.0, 9.5, Some(0.0))));
+        assert_eq!(
+            run.seconds_per_1k,
+            Some(30.0),
+            "only the interval with both times"
+        );
     }
 
     #[test]
@@ -468,5 +510,9 @@ mod tests {
         std::fs::write(&path, format!("{TRAIN_HEADER}\n1,2,3\n")).unwrap();
         let err = summarise(&path, &[1.0], None).unwrap_err().to_string();
         assert!(err.contains("row 2 has 3 values"), "{err}");
+        let rows = "100,0,1,0,100,1,0,0,0,0,0\n50,1,1,0,100,1,0,0,0,0,0";
+        std::fs::write(&path, format!("{TRAIN_HEADER}\n{rows}\n")).unwrap();
+        let err = summarise(&path, &[1.0], None).unwrap_err().to_string();
+        assert!(err.contains("row 3: steps go back (50 after 100)"), "{err}");
     }
 }
