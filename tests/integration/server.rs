@@ -654,6 +654,44 @@ async fn drains_on(signal: &str) {
     drop(tx);
 }
 
+#[test]
+fn sigterm_stops_a_server_whose_stdout_and_stderr_readers_are_gone() {
+    // As when the process that started the server and read its output has died.
+    let dir = bundle_dir();
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_prac"))
+        .args(["serve", "--listen", "127.0.0.1:0", "--bundles"])
+        .arg(dir.path())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufRead::read_line(
+        &mut std::io::BufReader::new(child.stdout.take().unwrap()),
+        &mut line,
+    )
+    .unwrap();
+    assert!(line.starts_with("listening on "), "{line}");
+    drop(child.stderr.take());
+    let status = std::process::Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let start = std::time::Instant::now();
+    let exit = loop {
+        if let Some(exit) = child.try_wait().unwrap() {
+            break exit;
+        }
+        if start.elapsed() > Duration::from_secs(30) {
+            let _ = child.kill();
+            panic!("the server did not stop on SIGTERM with its output's readers gone");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    assert!(exit.success(), "{exit:?}");
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn health_and_reflection() {
     use tonic_health::pb::health_check_response::ServingStatus;
