@@ -29,24 +29,52 @@ pub fn prac_binary(explicit: Option<&Path>) -> anyhow::Result<PathBuf> {
     }
 }
 
+/// Drop ends the server only when this process unwinds; a client killed outright (SIGKILL, or
+/// a SIGTERM it does not handle) would leave its server running on. On Linux the server is
+/// also sent SIGTERM when the thread that started it ends (its parent-death signal).
+#[cfg(target_os = "linux")]
+fn end_with_this_process(command: &mut tokio::process::Command) {
+    let parent = std::process::id();
+    // SAFETY: between fork and exec the closure calls only prctl and getppid, which are
+    // async-signal-safe, and allocates nothing.
+    unsafe {
+        command.pre_exec(move || {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            // The parent may have died before the signal was asked for.
+            if libc::getppid() as u32 != parent {
+                return Err(std::io::Error::other(
+                    "the client exited while starting its server",
+                ));
+            }
+            Ok(())
+        });
+    }
+}
+
+#[cfg(not(target_os = "linux"))]
+fn end_with_this_process(_command: &mut tokio::process::Command) {}
+
 impl LocalServer {
     /// Starts `bin serve --listen 127.0.0.1:0 --bundles DIR ARGS...` and waits for its
     /// `listening on ADDR` line.
     pub async fn start(bin: &Path, bundles: &Path, args: &[String]) -> anyhow::Result<LocalServer> {
-        let mut child = tokio::process::Command::new(bin)
+        let mut command = tokio::process::Command::new(bin);
+        command
             .args(["serve", "--listen", "127.0.0.1:0", "--bundles"])
             .arg(bundles)
             .args(args)
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
-            .kill_on_drop(true)
-            .spawn()
-            .with_context(|| {
-                format!(
-                    "starting {} (build it: cargo build --release)",
-                    bin.display()
-                )
-            })?;
+            .kill_on_drop(true);
+        end_with_this_process(&mut command);
+        let mut child = command.spawn().with_context(|| {
+            format!(
+                "starting {} (build it: cargo build --release)",
+                bin.display()
+            )
+        })?;
         let log: std::sync::Arc<std::sync::Mutex<std::collections::VecDeque<String>>> =
             Default::default();
         let stderr = child.stderr.take().context("server stderr")?;

@@ -384,3 +384,88 @@ fn plans_grow_and_stop_where_the_flags_say() {
         "--grow and --fixed exclude each other"
     );
 }
+
+/// The pids of the processes whose parent is `parent` (from /proc).
+#[cfg(target_os = "linux")]
+fn children_of(parent: u32) -> Vec<u32> {
+    let mut children = Vec::new();
+    for entry in std::fs::read_dir("/proc").unwrap().flatten() {
+        let Some(pid) = entry
+            .file_name()
+            .to_str()
+            .and_then(|n| n.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        // /proc/PID/stat: "PID (COMM) STATE PPID ..."; COMM may hold spaces, so read after ')'.
+        let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
+            continue;
+        };
+        let ppid = stat
+            .rsplit_once(')')
+            .and_then(|(_, rest)| rest.split_whitespace().nth(1))
+            .and_then(|p| p.parse::<u32>().ok());
+        if ppid == Some(parent) {
+            children.push(pid);
+        }
+    }
+    children
+}
+
+#[cfg(target_os = "linux")]
+#[test]
+fn a_killed_client_takes_its_local_server_with_it() {
+    let out = tempfile::tempdir().unwrap();
+    let mut client = Command::new(env!("CARGO_BIN_EXE_prac-sim"))
+        .arg("--bundles")
+        .arg(shipped_bundles())
+        .args([
+            "--quiet",
+            "sweep",
+            "--policy",
+            "pendulum",
+            "--episodes",
+            "100000",
+            "--out",
+        ])
+        .arg(out.path())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let started = std::time::Instant::now();
+    // The server once it runs `prac serve` (not the fork before its exec)...
+    let server = loop {
+        let serving = children_of(client.id()).into_iter().find(|pid| {
+            std::fs::read(format!("/proc/{pid}/cmdline"))
+                .is_ok_and(|cmdline| cmdline.split(|&b| b == 0).any(|arg| arg == b"serve"))
+        });
+        if let Some(pid) = serving {
+            break pid;
+        }
+        assert!(
+            started.elapsed() < std::time::Duration::from_secs(60),
+            "prac-sim started no server"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    };
+    // ...and past its ready line, which a server whose stdout reader is gone could not print.
+    std::thread::sleep(std::time::Duration::from_secs(2));
+    // Killed outright: no destructor runs in prac-sim.
+    client.kill().unwrap();
+    client.wait().unwrap();
+    let killed = std::time::Instant::now();
+    while std::path::Path::new(&format!("/proc/{server}")).exists()
+        && std::fs::read_to_string(format!("/proc/{server}/stat")).is_ok_and(|stat| {
+            !stat
+                .rsplit_once(')')
+                .is_some_and(|(_, r)| r.trim_start().starts_with('Z'))
+        })
+    {
+        assert!(
+            killed.elapsed() < std::time::Duration::from_secs(20),
+            "the local server {server} outlived its client"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+}
