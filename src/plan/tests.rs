@@ -713,6 +713,128 @@ fn a_plan_kept_whole_draws_its_first_new_action_in_the_tests_actor_pass() {
     }
 }
 
+/// The networks of `nets` with an actor that gives NaN at states whose first value exceeds
+/// `above`.
+struct NanActorAbove {
+    nets: ClosedForm,
+    above: f32,
+}
+
+impl Networks for NanActorAbove {
+    fn obs_dim(&self) -> usize {
+        self.nets.obs_dim()
+    }
+    fn act_dim(&self) -> usize {
+        self.nets.act_dim()
+    }
+    fn act(&mut self, obs: &[f32], noise: &[f32], actions: &mut [f32]) {
+        self.nets.act(obs, noise, actions);
+        for (state, action) in obs.chunks_exact(OBS).zip(actions.chunks_exact_mut(ACT)) {
+            if state[0] > self.above {
+                action.fill(f32::NAN);
+            }
+        }
+    }
+    fn q_pair(
+        &mut self,
+        obs: &[f32],
+        a: &[f32],
+        b: &[f32],
+        q_a: &mut [f32],
+        q_b: &mut [f32],
+        largest_gap: Option<&mut [f32]>,
+    ) {
+        self.nets.q_pair(obs, a, b, q_a, q_b, largest_gap);
+    }
+    fn predict_next(&mut self, obs: &[f32], actions: &[f32], next_obs: &mut [f32]) {
+        self.nets.predict_next(obs, actions, next_obs);
+    }
+    fn policy_distance(&mut self, obs: &[f32], actions: &[f32], distance: &mut [f32]) {
+        self.nets.policy_distance(obs, actions, distance);
+    }
+}
+
+#[test]
+fn an_actor_failing_after_a_plan_kept_whole_fails_as_the_plain_algorithm_does() {
+    use rand::Rng;
+    let mut scenario = ChaCha8Rng::seed_from_u64(7);
+    let mut after_kept_whole = 0;
+    for case in 0..300 {
+        let config = ReplanConfig {
+            sampled: case % 2 == 1,
+            ..huge_eps(Growth::Grow(2), 48)
+        };
+        let mut old = Plan::with_capacity(OBS, ACT, 64);
+        for j in 0..scenario.random_range(0..40usize) {
+            old.push(
+                &[scenario.random_range(-1.0f32..1.0)],
+                &[0.0, 0.0],
+                j as u64,
+            );
+        }
+        let state = [
+            scenario.random_range(-1.0..1.0),
+            scenario.random_range(-1.0..1.0),
+        ];
+        // Half the cases: a threshold between the old plan's states and the state after it (the
+        // exact model's rollout), where one exists; the others anywhere.
+        let mut rollout = vec![state];
+        for j in 0..old.len() {
+            let last = rollout[rollout.len() - 1];
+            rollout.push(env_step(&last, old.action(j)));
+        }
+        let before_end = rollout[..rollout.len() - 1]
+            .iter()
+            .map(|s| s[0])
+            .fold(f32::NEG_INFINITY, f32::max);
+        let end = rollout[rollout.len() - 1][0];
+        let above = if case % 4 < 2 && end > before_end {
+            (before_end + end) / 2.0
+        } else {
+            scenario.random_range(-1.5..1.5)
+        };
+        let run = |reference: bool| {
+            let mut nets = NanActorAbove {
+                nets: ClosedForm::exact(),
+                above,
+            };
+            let mut new = Plan::with_capacity(OBS, ACT, 64);
+            let mut rng = ChaCha8Rng::seed_from_u64(case);
+            let job = ReplanJob {
+                config,
+                state: &state,
+                step: 40,
+                old: old.tail(0),
+                new: &mut new,
+                rng: &mut rng,
+            };
+            let outcome = match reference {
+                true => reference::reference_replan(&mut nets, job),
+                false => replan(&mut nets, job, &mut ReplanScratch::new(OBS, ACT)),
+            };
+            (outcome, new, rng.random::<u64>())
+        };
+        let (expected, expected_plan, expected_rng) = run(true);
+        let (got, got_plan, got_rng) = run(false);
+        assert_eq!(got, expected, "case {case}");
+        if expected.is_ok() {
+            assert_eq!(got_plan, expected_plan, "case {case}");
+            assert_eq!(got_rng, expected_rng, "case {case}");
+        }
+        // The actor failed at the state after the whole old plan: the extension's first action.
+        if !old.is_empty()
+            && expected
+                == Err(NonFinite {
+                    what: "actor",
+                    index: old.len(),
+                })
+        {
+            after_kept_whole += 1;
+        }
+    }
+    assert!(after_kept_whole > 10, "exercised {after_kept_whole} times");
+}
+
 #[test]
 fn chunked_batched_replan_matches_the_plain_algorithm() {
     use rand::Rng;
