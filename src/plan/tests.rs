@@ -631,13 +631,25 @@ fn a_batch_gives_each_session_what_it_gets_alone() {
     assert!(saw_break);
 }
 
-/// The networks of `nets`, counting the actor's passes.
-struct CountingActor {
+/// The networks of `nets`, counting the actor's passes, with an actor that gives NaN at states
+/// whose first value exceeds `nan_actor_above`.
+struct Instrumented {
     nets: ClosedForm,
-    passes: usize,
+    actor_passes: usize,
+    nan_actor_above: f32,
 }
 
-impl Networks for CountingActor {
+impl Instrumented {
+    fn new(nan_actor_above: f32) -> Instrumented {
+        Instrumented {
+            nets: ClosedForm::exact(),
+            actor_passes: 0,
+            nan_actor_above,
+        }
+    }
+}
+
+impl Networks for Instrumented {
     fn obs_dim(&self) -> usize {
         self.nets.obs_dim()
     }
@@ -645,8 +657,13 @@ impl Networks for CountingActor {
         self.nets.act_dim()
     }
     fn act(&mut self, obs: &[f32], noise: &[f32], actions: &mut [f32]) {
-        self.passes += 1;
+        self.actor_passes += 1;
         self.nets.act(obs, noise, actions);
+        for (state, action) in obs.chunks_exact(OBS).zip(actions.chunks_exact_mut(ACT)) {
+            if state[0] > self.nan_actor_above {
+                action.fill(f32::NAN);
+            }
+        }
     }
     fn q_pair(
         &mut self,
@@ -673,10 +690,7 @@ fn a_plan_kept_whole_draws_its_first_new_action_in_the_tests_actor_pass() {
     // the old plan, so appending k = 2 actions takes one more pass, not two; a plan already at
     // its cap appends nothing and takes the test's pass alone; an empty old plan has no test.
     for (cap, old_len, passes) in [(32, 5, 2), (32, 8, 2), (6, 6, 1), (32, 0, 2)] {
-        let mut nets = CountingActor {
-            nets: ClosedForm::exact(),
-            passes: 0,
-        };
+        let mut nets = Instrumented::new(f32::INFINITY);
         let mut old = Plan::with_capacity(OBS, ACT, 64);
         for j in 0..old_len {
             old.push(&[0.1 * j as f32], &[0.0, 0.0], j as u64);
@@ -698,7 +712,7 @@ fn a_plan_kept_whole_draws_its_first_new_action_in_the_tests_actor_pass() {
         .unwrap();
         assert_eq!(outcome.kept, old_len.min(cap), "cap {cap}, {old_len} old");
         assert_eq!(outcome.appended, 2.min(cap - outcome.kept));
-        assert_eq!(nets.passes, passes, "cap {cap}, {old_len} old");
+        assert_eq!(nets.actor_passes, passes, "cap {cap}, {old_len} old");
         // The first new action is pi at the model's state after the kept ones.
         if outcome.appended > 0 {
             let after = match outcome.kept {
@@ -710,47 +724,6 @@ fn a_plan_kept_whole_draws_its_first_new_action_in_the_tests_actor_pass() {
             };
             assert_eq!(new.action(outcome.kept)[0], ClosedForm::mean_action(&after));
         }
-    }
-}
-
-/// The networks of `nets` with an actor that gives NaN at states whose first value exceeds
-/// `above`.
-struct NanActorAbove {
-    nets: ClosedForm,
-    above: f32,
-}
-
-impl Networks for NanActorAbove {
-    fn obs_dim(&self) -> usize {
-        self.nets.obs_dim()
-    }
-    fn act_dim(&self) -> usize {
-        self.nets.act_dim()
-    }
-    fn act(&mut self, obs: &[f32], noise: &[f32], actions: &mut [f32]) {
-        self.nets.act(obs, noise, actions);
-        for (state, action) in obs.chunks_exact(OBS).zip(actions.chunks_exact_mut(ACT)) {
-            if state[0] > self.above {
-                action.fill(f32::NAN);
-            }
-        }
-    }
-    fn q_pair(
-        &mut self,
-        obs: &[f32],
-        a: &[f32],
-        b: &[f32],
-        q_a: &mut [f32],
-        q_b: &mut [f32],
-        largest_gap: Option<&mut [f32]>,
-    ) {
-        self.nets.q_pair(obs, a, b, q_a, q_b, largest_gap);
-    }
-    fn predict_next(&mut self, obs: &[f32], actions: &[f32], next_obs: &mut [f32]) {
-        self.nets.predict_next(obs, actions, next_obs);
-    }
-    fn policy_distance(&mut self, obs: &[f32], actions: &[f32], distance: &mut [f32]) {
-        self.nets.policy_distance(obs, actions, distance);
     }
 }
 
@@ -794,10 +767,7 @@ fn an_actor_failing_after_a_plan_kept_whole_fails_as_the_plain_algorithm_does() 
             scenario.random_range(-1.5..1.5)
         };
         let run = |reference: bool| {
-            let mut nets = NanActorAbove {
-                nets: ClosedForm::exact(),
-                above,
-            };
+            let mut nets = Instrumented::new(above);
             let mut new = Plan::with_capacity(OBS, ACT, 64);
             let mut rng = ChaCha8Rng::seed_from_u64(case);
             let job = ReplanJob {
