@@ -21,8 +21,11 @@ pub const FORMAT_VERSION_OBS_BOUNDS: u32 = 4;
 /// Version 5 adds `default_guard` (the plan guard of sessions that ask for none): an older
 /// server must refuse such a bundle rather than serve it without its guard.
 pub const FORMAT_VERSION_DEFAULT_GUARD: u32 = 5;
+/// Version 6 adds `default_guard.max_epsilon_coef` (a bundle's cap on its sessions' eps): a
+/// version-5 server would ignore the field and serve the larger eps.
+pub const FORMAT_VERSION_EPSILON_LIMIT: u32 = 6;
 /// The newest version this prac reads.
-pub(crate) const NEWEST_FORMAT_VERSION: u32 = FORMAT_VERSION_DEFAULT_GUARD;
+pub(crate) const NEWEST_FORMAT_VERSION: u32 = FORMAT_VERSION_EPSILON_LIMIT;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Manifest {
@@ -465,6 +468,34 @@ impl Manifest {
                     "measures actions against the policy's Gaussian, and the actor is {}",
                     self.actor.kind.as_str()
                 ),
+            );
+        }
+        let coef = guard.max_epsilon_coef;
+        if coef == 0.0 {
+            return Ok(());
+        }
+        if self.format_version < FORMAT_VERSION_EPSILON_LIMIT {
+            return fail(
+                ".max_epsilon_coef",
+                format!(
+                    "needs format_version {FORMAT_VERSION_EPSILON_LIMIT}, the bundle says {}",
+                    self.format_version
+                ),
+            );
+        }
+        if !(coef.is_finite() && coef > 0.0) {
+            return fail(
+                ".max_epsilon_coef",
+                format!("is {coef}; expected a finite value >= 0 (0: no limit)"),
+            );
+        }
+        if !self
+            .value_scale
+            .is_some_and(|scale| scale.v_pi > scale.v_rand)
+        {
+            return fail(
+                ".max_epsilon_coef",
+                "needs value_scale with V_pi > V_rand".to_string(),
             );
         }
         Ok(())

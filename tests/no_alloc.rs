@@ -78,6 +78,7 @@ fn steps_after_the_first_do_not_allocate() {
     let guarded = Guard {
         every_critic: true,
         support_limit: 3.0,
+        ..Default::default()
     };
     for (manifest, epsilon, sampled, guard) in [
         (&plain, 0.0, false, Guard::default()),

@@ -519,8 +519,8 @@ fn actor_kinds_need_format_2_and_a_clip_only_where_it_means_something() {
             .contains("only for gaussian_sde actors")
     );
     let mut newer = small_policy();
-    newer.manifest.format_version = 6;
-    assert!(reason(newer).contains("this prac reads versions 1 to 5"));
+    newer.manifest.format_version = 7;
+    assert!(reason(newer).contains("this prac reads versions 1 to 6"));
     // A Gaussian actor's manifest says nothing of kinds: version-1 bytes stay as they were.
     let json = serde_json::to_string(&small_policy().manifest).unwrap();
     assert!(
@@ -720,6 +720,7 @@ fn a_default_guard_round_trips_and_bad_ones_are_named() {
     let guard = Guard {
         every_critic: true,
         support_limit: 3.5,
+        ..Default::default()
     };
     let loaded = from_bytes(&to_bytes(&guarded(&plain, guard)).unwrap(), &path()).unwrap();
     assert_eq!(loaded.manifest.default_guard, Some(guard));
@@ -733,6 +734,7 @@ fn a_default_guard_round_trips_and_bad_ones_are_named() {
     let negative = Guard {
         every_critic: false,
         support_limit: -1.0,
+        ..Default::default()
     };
     assert_eq!(
         reason(guarded(&plain, negative)),
@@ -751,6 +753,7 @@ fn a_default_guard_round_trips_and_bad_ones_are_named() {
     deterministic.manifest.default_guard = Some(Guard {
         every_critic: true,
         support_limit: 0.0,
+        ..Default::default()
     });
     let json = serde_json::to_string(&deterministic.manifest).unwrap();
     assert!(deterministic.manifest.validate().is_ok(), "{json}");
@@ -764,4 +767,58 @@ fn load_reason(policy: Policy) -> String {
     let json = serde_json::to_string(&policy.manifest).unwrap();
     let e = load_error(&rebuild(&tensors(&policy), Some(&json)));
     format!("{}: {}", e.field, e.reason)
+}
+
+#[test]
+fn a_default_epsilon_limit_needs_format_6_and_a_value_scale() {
+    use crate::plan::Guard;
+    let reason = load_reason;
+    let plain = small_policy();
+    let capped = Guard {
+        support_limit: 3.0,
+        max_epsilon_coef: 0.005,
+        ..Default::default()
+    };
+    // A version-5 server would ignore the limit and serve the larger eps: format 6.
+    assert_eq!(
+        reason(guarded(&plain, capped)),
+        "manifest.default_guard.max_epsilon_coef: needs format_version 6, the bundle says 5"
+    );
+    let mut six = guarded(&plain, capped);
+    six.manifest.format_version = crate::manifest::FORMAT_VERSION_EPSILON_LIMIT;
+    let loaded = from_bytes(&to_bytes(&six).unwrap(), &path()).unwrap();
+    assert_eq!(loaded.manifest.default_guard, Some(capped));
+    // JSON holds no NaN or infinity; the manifest's own check refuses them all the same.
+    for bad in [-0.01, f64::NAN, f64::INFINITY] {
+        let mut policy = six.clone();
+        policy.manifest.default_guard = Some(Guard {
+            max_epsilon_coef: bad,
+            ..capped
+        });
+        let (field, why) = policy.manifest.validate().unwrap_err();
+        assert_eq!(field, "default_guard.max_epsilon_coef", "{bad}");
+        assert!(why.starts_with("is "), "{bad}: {why}");
+        if bad.is_finite() {
+            assert!(reason(policy).starts_with("manifest.default_guard.max_epsilon_coef: is "));
+        }
+    }
+    let mut unscaled = six.clone();
+    unscaled.manifest.value_scale = None;
+    assert_eq!(
+        reason(unscaled),
+        "manifest.default_guard.max_epsilon_coef: needs value_scale with V_pi > V_rand"
+    );
+    // A guard without a limit writes none: its bundle stays format 5 and hashes as before.
+    let json = serde_json::to_string(
+        &guarded(
+            &plain,
+            Guard {
+                max_epsilon_coef: 0.0,
+                ..capped
+            },
+        )
+        .manifest,
+    )
+    .unwrap();
+    assert!(!json.contains("max_epsilon_coef"), "{json}");
 }

@@ -66,6 +66,7 @@ impl ModelErrorArgs {
                     .then_some(prac::proto::PlanGuard {
                         every_critic: self.every_critic,
                         support_limit: self.support_limit.unwrap_or(0.0),
+                        ..Default::default()
                     }),
                 ..Default::default()
             };

@@ -99,16 +99,30 @@ pub struct Guard {
     /// mean at s ([`Networks::policy_distance`]); 0 sets no limit.
     #[serde(default)]
     pub support_limit: f32,
+    /// Hold the session's eps to at most this coefficient of the policy's `V_pi - V_rand`,
+    /// applied when its options are resolved: past it a bundle's plans may grow no longer while
+    /// its robots fall more. 0 sets no limit. Left out of a manifest where 0, so bundles without
+    /// it read and hash as before.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub max_epsilon_coef: f64,
+}
+
+fn is_zero(value: &f64) -> bool {
+    *value == 0.0
 }
 
 impl std::fmt::Display for Guard {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match (self.every_critic, self.support_limit > 0.0) {
-            (true, true) => write!(f, "every critic, support limit {}", self.support_limit),
-            (true, false) => write!(f, "every critic"),
-            (false, true) => write!(f, "support limit {}", self.support_limit),
-            (false, false) => write!(f, "the paper's test"),
+            (true, true) => write!(f, "every critic, support limit {}", self.support_limit)?,
+            (true, false) => write!(f, "every critic")?,
+            (false, true) => write!(f, "support limit {}", self.support_limit)?,
+            (false, false) => write!(f, "the paper's test")?,
         }
+        if self.max_epsilon_coef > 0.0 {
+            write!(f, ", eps coefficient at most {}", self.max_epsilon_coef)?;
+        }
+        Ok(())
     }
 }
 

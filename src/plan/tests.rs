@@ -378,6 +378,7 @@ fn the_support_limit_breaks_at_an_action_the_policy_would_not_take() {
         guard: Guard {
             every_critic: false,
             support_limit,
+            ..Default::default()
         },
         ..huge_eps(Growth::Grow(2), 32)
     };
@@ -416,6 +417,7 @@ fn every_critic_breaks_where_one_critic_objects_and_their_aggregate_does_not() {
         guard: Guard {
             every_critic,
             support_limit: 0.0,
+            ..Default::default()
         },
         ..ReplanConfig::default()
     };
@@ -823,6 +825,7 @@ fn chunked_batched_replan_matches_the_plain_algorithm() {
             guard: Guard {
                 every_critic: case % 5 < 2,
                 support_limit: [0.0, 0.5, 2.0, 4.0][case / 5 % 4],
+                ..Default::default()
             },
         };
         let mut nets = ClosedForm {

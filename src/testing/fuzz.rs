@@ -121,7 +121,7 @@ struct Options {
     max_horizon: u32,
     sampled: bool,
     seed: u64,
-    guard: Option<(bool, f64)>,
+    guard: Option<(bool, f64, f64)>,
 }
 
 #[derive(Arbitrary, Debug)]
@@ -170,12 +170,13 @@ pub fn requests(data: &[u8]) -> bool {
         max_horizon: o.max_horizon,
         sampled: o.sampled,
         seed: o.seed,
-        guard: o
-            .guard
-            .map(|(every_critic, support_limit)| proto::PlanGuard {
+        guard: o.guard.map(
+            |(every_critic, support_limit, max_epsilon_coef)| proto::PlanGuard {
                 every_critic,
                 support_limit,
-            }),
+                max_epsilon_coef,
+            },
+        ),
     });
     let Ok(settings) = SessionSettings::resolve(options.as_ref(), &policy, 256) else {
         return false;

@@ -47,6 +47,73 @@ fn inspect_prints_the_manifest_and_a_forward_pass() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_default_guards_epsilon_limit_holds_served_sessions_to_it() {
+    use prac::proto::session_options::Tolerance;
+    use prac::proto::{OpenSessionRequest, PlanGuard, SessionOptions};
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("toy.safetensors");
+    let policy = toy_policy("toy", 4);
+    let scale = policy
+        .manifest
+        .value_scale
+        .expect("the toy has a value scale");
+    let range = scale.v_pi - scale.v_rand;
+    prac::bundle::save(&policy, &file).unwrap();
+    let file = file.to_str().unwrap();
+    let out = prac(&["default-guard", file, "--max-epsilon-coef", "0.005"]);
+    assert!(out.status.success(), "{out:?}");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        stdout.contains("default guard the paper's test, eps coefficient at most 0.005 (format 6)"),
+        "{stdout}"
+    );
+    let before = std::fs::read(file).unwrap();
+    let out = prac(&["default-guard", file, "--max-epsilon-coef=-1"]);
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("manifest.default_guard.max_epsilon_coef is -1"),
+        "{stderr}"
+    );
+    assert_eq!(std::fs::read(file).unwrap(), before);
+
+    let server = common::Server::start(dir.path(), &[]);
+    server.wait_serving().await;
+    let mut client = server.client().await;
+    let open = |coef: f64, guard: Option<PlanGuard>| OpenSessionRequest {
+        policy: "toy".into(),
+        options: Some(SessionOptions {
+            tolerance: Some(Tolerance::EpsilonCoef(coef)),
+            guard,
+            ..Default::default()
+        }),
+        resume: None,
+    };
+    let epsilon = |response: tonic::Response<prac::proto::OpenSessionResponse>| {
+        response.into_inner().options.unwrap().epsilon
+    };
+    let held = (0.005 * range) as f32 as f64;
+    assert_eq!(
+        epsilon(client.open_session(open(0.01, None)).await.unwrap()),
+        held
+    );
+    assert_eq!(
+        epsilon(client.open_session(open(0.002, None)).await.unwrap()),
+        (0.002 * range) as f32 as f64
+    );
+    // The paper's test is not held.
+    assert_eq!(
+        epsilon(
+            client
+                .open_session(open(0.01, Some(PlanGuard::default())))
+                .await
+                .unwrap()
+        ),
+        (0.01 * range) as f32 as f64
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn default_guard_sets_what_sessions_without_a_guard_get() {
     use prac::proto::{OpenSessionRequest, PlanGuard, SessionOptions};
     let dir = tempfile::tempdir().unwrap();
@@ -91,6 +158,7 @@ async fn default_guard_sets_what_sessions_without_a_guard_get() {
     let guard = PlanGuard {
         every_critic: true,
         support_limit: 3.0,
+        ..Default::default()
     };
     assert_eq!(listed.policies[0].default_guard, Some(guard));
     let open = |guard: Option<PlanGuard>| OpenSessionRequest {

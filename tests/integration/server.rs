@@ -452,6 +452,7 @@ async fn every_error_status_with_a_clear_message() {
                     guard: Some(proto::PlanGuard {
                         every_critic: true,
                         support_limit: -2.0,
+                        ..Default::default()
                     }),
                     ..options(None, None, 0)
                 },
@@ -846,6 +847,7 @@ async fn run_sessions(
             let guard = (k % 2 == 1).then_some(proto::PlanGuard {
                 every_critic: k % 4 == 1,
                 support_limit: 1.0,
+                ..Default::default()
             });
             let session = open(
                 &mut client,

@@ -277,6 +277,7 @@ fn session_options(args: &Args) -> proto::SessionOptions {
         guard: (args.every_critic || args.support_limit.is_some()).then_some(proto::PlanGuard {
             every_critic: args.every_critic,
             support_limit: args.support_limit.unwrap_or(0.0),
+            ..Default::default()
         }),
     }
 }

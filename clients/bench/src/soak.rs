@@ -164,6 +164,7 @@ fn options(rng: &mut ChaCha8Rng) -> proto::SessionOptions {
         guard: rng.random_bool(0.5).then(|| proto::PlanGuard {
             every_critic: rng.random_bool(0.5),
             support_limit: rng.random_range(0.0..4.0),
+            ..Default::default()
         }),
         ..Default::default()
     }

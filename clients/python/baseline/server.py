@@ -378,6 +378,7 @@ class Service(pb_grpc.PracServicer):  # type: ignore[misc]
         default_guard = p.manifest.get("default_guard") or {}
         info.default_guard.every_critic = default_guard.get("every_critic", False)
         info.default_guard.support_limit = float(F32(default_guard.get("support_limit", 0.0)))
+        info.default_guard.max_epsilon_coef = default_guard.get("max_epsilon_coef", 0.0)
         if p.value_scale:
             info.value_scale.v_pi = p.value_scale["v_pi"]
             info.value_scale.v_rand = p.value_scale["v_rand"]
@@ -410,6 +411,12 @@ class Service(pb_grpc.PracServicer):  # type: ignore[misc]
         support_limit = guard.support_limit if o.HasField("guard") else guard.get("support_limit", 0.0)
         if support_limit > 0 and p.log_std_w is None:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "guard.support_limit needs a Gaussian actor")
+        # Not a break: eps is held to max_epsilon_coef x (V_pi - V_rand), in f64 before it becomes an f32.
+        max_coef = guard.max_epsilon_coef if o.HasField("guard") else guard.get("max_epsilon_coef", 0.0)
+        if max_coef > 0:
+            if not p.value_scale or p.value_scale["v_pi"] <= p.value_scale["v_rand"]:
+                await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "guard.max_epsilon_coef needs a value scale")
+            eps = min(eps, max_coef * (p.value_scale["v_pi"] - p.value_scale["v_rand"]))
         session = Session(request.policy, p, float(F32(eps)), grow, fixed, horizon, every_critic, float(F32(support_limit)))
         sid = secrets.token_hex(16)
         self.sessions[sid] = session
@@ -418,7 +425,9 @@ class Service(pb_grpc.PracServicer):  # type: ignore[misc]
             growth_mode="fixed" if fixed else "grow",
             growth=fixed or grow or 2,
             max_horizon=horizon,
-            guard=pb.PlanGuard(every_critic=every_critic, support_limit=session.support_limit),
+            guard=pb.PlanGuard(
+                every_critic=every_critic, support_limit=session.support_limit, max_epsilon_coef=max_coef
+            ),
         )
         return pb.OpenSessionResponse(session_id=sid, policy=self.info(request.policy), options=resolved)
 

@@ -57,7 +57,8 @@ def write_toy_bundle(
     if layer_norm:
         tensors, manifest = with_layer_norm_critics(dict(tensors), dict(manifest))
     if default_guard is not None:
-        manifest = {**manifest, "format_version": 5, "default_guard": default_guard}
+        version = 6 if default_guard.get("max_epsilon_coef") else 5
+        manifest = {**manifest, "format_version": version, "default_guard": default_guard}
     path = directory / f"{name}.safetensors"
     write_bundle(path, tensors, manifest)
     return path

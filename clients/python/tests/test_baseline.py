@@ -9,6 +9,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from prac_client import Client
 
@@ -55,6 +56,50 @@ def test_the_baseline_applies_a_bundles_default_guard_as_prac_serve_does(tmp_pat
         # Sessions that set no guard get the default; the guarded ones must break plans.
         answers_alike(tmp_path, server, bundle_default=True)
     finally:
+        server.stop()
+
+
+def test_the_baseline_holds_eps_to_a_bundles_limit_as_prac_serve_does(tmp_path: pathlib.Path) -> None:
+    # The toy bundle's V_pi - V_rand is 20: the limit 0.001 holds eps to 0.02.
+    write_toy_bundle(tmp_path, default_guard={"support_limit": 0.5, "max_epsilon_coef": 0.001})
+    server = Server(tmp_path)
+    baseline = subprocess.Popen(
+        [sys.executable, str(REPO / "clients" / "python" / "baseline" / "server.py"), "--bundles", str(tmp_path), "--listen", "127.0.0.1:0"],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert baseline.stdout is not None
+        line = baseline.stdout.readline()
+        assert line.startswith("listening on "), line
+        address = line.removeprefix("listening on ").strip()
+        with Client(server.address, timeout=10) as ours, Client(address, timeout=10) as theirs:
+            for client in (ours, theirs):
+                (info,) = client.policies()
+                assert info.default_guard.max_epsilon_coef == 0.001
+            rng = np.random.default_rng(7)
+            # Above the limit (held), below it (as asked), and the paper's test (no limit).
+            for options, expected in (
+                ({"epsilon_coef": 0.01}, 0.02),
+                ({"epsilon": 1.0}, 0.02),
+                ({"epsilon": 0.005}, 0.005),
+                ({"epsilon": 1.0, "support_limit": 0.0}, 1.0),
+            ):
+                a = ours.session("pendulum", growth="grow 2", max_horizon=12, **options)
+                b = theirs.session("pendulum", growth="grow 2", max_horizon=12, **options)
+                assert a.options.epsilon == b.options.epsilon == pytest.approx(expected, rel=1e-6), options
+                assert a.options.guard == b.options.guard, options
+                obs = rng.uniform(-1, 1, 3)
+                for t in range(60):
+                    ra, rb = a.step(obs, new_episode=t == 0), b.step(obs, new_episode=t == 0)
+                    np.testing.assert_allclose(ra.forecast_actions, rb.forecast_actions, atol=1e-3)
+                    assert (ra.kept, ra.broke_at, ra.f_t) == (rb.kept, rb.broke_at, rb.f_t), (options, t)
+                    obs = np.clip(ra.forecast_observations[0] + rng.uniform(-0.3, 0.3, 3), -3, 3)
+                a.close()
+                b.close()
+    finally:
+        baseline.terminate()
+        baseline.wait(10)
         server.stop()
 
 

@@ -66,9 +66,13 @@ struct PlanArgs {
     /// mean also breaks the plan (guard.support_limit) [default: no limit].
     #[arg(long, value_name = "Z")]
     support_limit: Option<f64>,
+    /// Hold the sessions' eps to at most C x (V_pi - V_rand) of the policy's value scale
+    /// (guard.max_epsilon_coef) [default: no limit].
+    #[arg(long, value_name = "C")]
+    max_epsilon_coef: Option<f64>,
     /// The paper's test alone, whatever guard the policy's bundle sets by default (an empty
     /// guard). Without any guard flag the sessions get the bundle's default_guard.
-    #[arg(long, conflicts_with_all = ["every_critic", "support_limit"])]
+    #[arg(long, conflicts_with_all = ["every_critic", "support_limit", "max_epsilon_coef"])]
     paper_test: bool,
 }
 
@@ -90,6 +94,7 @@ impl PlanArgs {
             max_horizon: self.max_horizon.unwrap_or(0),
             every_critic: self.every_critic,
             support_limit: self.support_limit.unwrap_or(0.0),
+            max_epsilon_coef: self.max_epsilon_coef.unwrap_or(0.0),
             paper_test: self.paper_test,
         })
     }

@@ -31,6 +31,7 @@ pub struct PlanShape {
     /// paper's test alone).
     pub every_critic: bool,
     pub support_limit: f64,
+    pub max_epsilon_coef: f64,
     pub paper_test: bool,
 }
 
@@ -45,8 +46,10 @@ impl PlanShape {
         let critics = self.every_critic.then(|| "every critic".to_string());
         let support =
             (self.support_limit > 0.0).then(|| format!("support limit {}", self.support_limit));
+        let tolerance = (self.max_epsilon_coef > 0.0)
+            .then(|| format!("eps coefficient at most {}", self.max_epsilon_coef));
         let paper = self.paper_test.then(|| "the paper's test".to_string());
-        let parts: Vec<String> = [growth, cap, critics, support, paper]
+        let parts: Vec<String> = [growth, cap, critics, support, tolerance, paper]
             .into_iter()
             .flatten()
             .collect();
@@ -55,12 +58,15 @@ impl PlanShape {
 
     /// The session option guard, where one is asked for (an empty one for the paper's test).
     pub fn guard(&self) -> Option<proto::PlanGuard> {
-        (self.every_critic || self.support_limit > 0.0 || self.paper_test).then_some(
-            proto::PlanGuard {
+        (self.every_critic
+            || self.support_limit > 0.0
+            || self.max_epsilon_coef > 0.0
+            || self.paper_test)
+            .then_some(proto::PlanGuard {
                 every_critic: self.every_critic,
                 support_limit: self.support_limit,
-            },
-        )
+                max_epsilon_coef: self.max_epsilon_coef,
+            })
     }
 
     /// The shape with the policy's default guard written out where none is asked for, so that
@@ -70,6 +76,7 @@ impl PlanShape {
             Some(g) if self.guard().is_none() => PlanShape {
                 every_critic: g.every_critic,
                 support_limit: g.support_limit,
+                max_epsilon_coef: g.max_epsilon_coef,
                 ..self
             },
             _ => self,
@@ -88,6 +95,8 @@ pub struct EpisodeResult {
     pub terminated: bool,
     /// How far the robot moved forward, metres (walkers only).
     pub distance: Option<f64>,
+    /// The eps in force, as OpenSession answered it (a guard may hold it below what was asked).
+    pub epsilon: f64,
     /// Mean of the server's f_t over the episode.
     pub forecast: f64,
     /// Steps at which the old plan broke (a replan), per step.
@@ -161,7 +170,7 @@ pub async fn play_episode(
         guard: plan.guard(),
         ..Default::default()
     };
-    let session = client
+    let opened = client
         .open_session(proto::OpenSessionRequest {
             policy: info.name.clone(),
             options: Some(options),
@@ -169,8 +178,9 @@ pub async fn play_episode(
         })
         .await
         .map_err(|s| anyhow::anyhow!("OpenSession: {}", s.message()))?
-        .into_inner()
-        .session_id;
+        .into_inner();
+    let session = opened.session_id;
+    let epsilon = opened.options.map_or(0.0, |o| o.epsilon);
     let (tx, rx) = mpsc::channel(2);
     let mut responses = client
         .step_stream(ReceiverStream::new(rx))
@@ -183,6 +193,7 @@ pub async fn play_episode(
     let start = env.forward_position();
     let mut result = EpisodeResult {
         seed,
+        epsilon,
         ..EpisodeResult::default()
     };
     let mut totals = prac::domains::EpisodeTotals::new(info.gamma);

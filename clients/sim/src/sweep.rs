@@ -97,11 +97,11 @@ pub async fn run(
     );
     let mut rows = Vec::new();
     for &coef in coefs {
-        let epsilon = coef * range;
+        let asked = coef * range;
         let results = play_many(
             client,
             info,
-            Tol::Absolute(epsilon),
+            Tol::Absolute(asked),
             plan,
             episodes,
             seed,
@@ -116,6 +116,8 @@ pub async fn run(
         let (np, np_std) = mean_std(&np);
         let (forecast, forecast_std) = mean_std(&forecasts);
         let summary = Summary::of(results.iter().map(|e| e.outcome()));
+        // The eps in force: a guard's max_epsilon_coef may hold it below what was asked.
+        let epsilon = results.first().map_or(asked, |e| e.epsilon);
         rows.push(SweepRow {
             coef,
             epsilon,

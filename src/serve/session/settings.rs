@@ -53,6 +53,15 @@ impl SessionSettings {
                 c * range
             }
         };
+        // The bundle's default was checked when it loaded.
+        let guard = match &options.guard {
+            None => policy.manifest.default_guard.unwrap_or_default(),
+            Some(g) => resolve_guard(g, policy)?,
+        };
+        let epsilon = match epsilon_limit(guard, policy) {
+            Some(limit) => epsilon.min(limit),
+            None => epsilon,
+        };
         // A finite tolerance always: coef x range can still overflow (or be 0 x inf).
         if !(epsilon.is_finite() && epsilon <= f32::MAX as f64) {
             return Err(format!(
@@ -93,11 +102,6 @@ impl SessionSettings {
                 policy.manifest.actor.kind.as_str()
             ));
         }
-        // The bundle's default was checked when it loaded.
-        let guard = match &options.guard {
-            None => policy.manifest.default_guard.unwrap_or_default(),
-            Some(g) => resolve_guard(g, policy)?,
-        };
         Ok(SessionSettings {
             replan: ReplanConfig {
                 epsilon: epsilon as f32,
@@ -131,7 +135,16 @@ pub(crate) fn guard_proto(guard: Guard) -> proto::PlanGuard {
     proto::PlanGuard {
         every_critic: guard.every_critic,
         support_limit: guard.support_limit as f64,
+        max_epsilon_coef: guard.max_epsilon_coef,
     }
+}
+
+/// The largest eps the guard allows: `max_epsilon_coef x (V_pi - V_rand)`, None without a limit.
+/// A guard with a limit has passed `resolve_guard` or the manifest's checks, so the policy has a
+/// value scale with V_pi > V_rand.
+fn epsilon_limit(guard: Guard, policy: &Policy) -> Option<f64> {
+    let scale = policy.manifest.value_scale?;
+    (guard.max_epsilon_coef > 0.0).then_some(guard.max_epsilon_coef * (scale.v_pi - scale.v_rand))
 }
 
 fn resolve_guard(guard: &proto::PlanGuard, policy: &Policy) -> Result<Guard, String> {
@@ -149,8 +162,27 @@ fn resolve_guard(guard: &proto::PlanGuard, policy: &Policy) -> Result<Guard, Str
             policy.manifest.actor.kind.as_str()
         ));
     }
+    let coef = guard.max_epsilon_coef;
+    if !(coef.is_finite() && coef >= 0.0) {
+        return Err(format!(
+            "guard.max_epsilon_coef is {coef}; expected a finite value >= 0 (0: no limit)"
+        ));
+    }
+    if coef > 0.0
+        && !policy
+            .manifest
+            .value_scale
+            .is_some_and(|scale| scale.v_pi > scale.v_rand)
+    {
+        return Err(format!(
+            "guard.max_epsilon_coef needs the policy's value scale with V_pi > V_rand, and \
+             bundle '{}' has none; leave max_epsilon_coef at 0",
+            policy.manifest.name
+        ));
+    }
     Ok(Guard {
         every_critic: guard.every_critic,
         support_limit: limit as f32,
+        max_epsilon_coef: coef,
     })
 }

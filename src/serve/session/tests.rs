@@ -231,13 +231,15 @@ fn a_guard_resolves_as_the_proto_says() {
     let guarded = with_guard(Some(proto::PlanGuard {
         every_critic: true,
         support_limit: 3.5,
+        ..Default::default()
     }));
     let settings = resolve(&guarded, &policy).unwrap();
     assert_eq!(
         settings.replan.guard,
         crate::plan::Guard {
             every_critic: true,
-            support_limit: 3.5
+            support_limit: 3.5,
+            ..Default::default()
         }
     );
     assert_eq!(settings.to_proto().guard, guarded.guard);
@@ -245,6 +247,7 @@ fn a_guard_resolves_as_the_proto_says() {
         let options = with_guard(Some(proto::PlanGuard {
             every_critic: false,
             support_limit: bad,
+            ..Default::default()
         }));
         let e = resolve(&options, &policy).unwrap_err();
         assert!(e.contains("guard.support_limit is"), "{bad}: {e}");
@@ -261,6 +264,7 @@ fn a_guard_resolves_as_the_proto_says() {
     let critics_only = with_guard(Some(proto::PlanGuard {
         every_critic: true,
         support_limit: 0.0,
+        ..Default::default()
     }));
     assert!(resolve(&critics_only, &deterministic).is_ok());
 }
@@ -270,6 +274,7 @@ fn a_session_without_a_guard_gets_its_bundles_default_guard() {
     let guard = crate::plan::Guard {
         every_critic: true,
         support_limit: 3.0,
+        ..Default::default()
     };
     let mut policy = (*policy()).clone();
     policy.manifest.default_guard = Some(guard);
@@ -285,7 +290,8 @@ fn a_session_without_a_guard_gets_its_bundles_default_guard() {
             settings.to_proto().guard,
             Some(proto::PlanGuard {
                 every_critic: true,
-                support_limit: 3.0
+                support_limit: 3.0,
+                ..Default::default()
             })
         );
     }
@@ -299,6 +305,7 @@ fn a_session_without_a_guard_gets_its_bundles_default_guard() {
         guard: Some(proto::PlanGuard {
             every_critic: false,
             support_limit: 5.0,
+            ..Default::default()
         }),
         ..Default::default()
     };
@@ -306,7 +313,87 @@ fn a_session_without_a_guard_gets_its_bundles_default_guard() {
         resolve(Some(&own)).replan.guard,
         crate::plan::Guard {
             every_critic: false,
-            support_limit: 5.0
+            support_limit: 5.0,
+            ..Default::default()
         }
     );
+}
+
+#[test]
+fn a_guards_epsilon_limit_holds_every_tolerance_to_it() {
+    use proto::session_options::Tolerance;
+    let mut policy = (*policy()).clone();
+    let scale = policy
+        .manifest
+        .value_scale
+        .expect("the test policy has a value scale");
+    let range = scale.v_pi - scale.v_rand;
+    assert!(range > 0.0);
+    let capped = crate::plan::Guard {
+        support_limit: 3.0,
+        max_epsilon_coef: 0.005,
+        ..Default::default()
+    };
+    policy.manifest.default_guard = Some(capped);
+    let with = |tolerance, guard| proto::SessionOptions {
+        tolerance: Some(tolerance),
+        guard,
+        ..Default::default()
+    };
+    let eps = |options: &proto::SessionOptions| {
+        SessionSettings::resolve(Some(options), &policy, 256)
+            .unwrap()
+            .to_proto()
+            .epsilon
+    };
+    let limit = (0.005 * range) as f32 as f64;
+    // Above the limit, as a coefficient or absolute: the limit, and the answer says so.
+    assert_eq!(eps(&with(Tolerance::EpsilonCoef(0.01), None)), limit);
+    assert_eq!(eps(&with(Tolerance::Epsilon(1e30), None)), limit);
+    // At or below it: as asked, bit for bit.
+    assert_eq!(eps(&with(Tolerance::EpsilonCoef(0.005), None)), limit);
+    assert_eq!(
+        eps(&with(Tolerance::EpsilonCoef(0.002), None)),
+        (0.002 * range) as f32 as f64
+    );
+    let resolved = SessionSettings::resolve(
+        Some(&with(Tolerance::EpsilonCoef(0.01), None)),
+        &policy,
+        256,
+    )
+    .unwrap();
+    assert_eq!(resolved.replan.guard, capped);
+    assert_eq!(resolved.to_proto().guard.unwrap().max_epsilon_coef, 0.005);
+    // The paper's test (an empty guard) or a guard of the session's own without a limit: none.
+    let paper = Some(proto::PlanGuard::default());
+    assert_eq!(
+        eps(&with(Tolerance::EpsilonCoef(0.01), paper)),
+        (0.01 * range) as f32 as f64
+    );
+    // A session may set its own limit; bad ones and ones the policy cannot scale are refused.
+    let own = |coef| {
+        Some(proto::PlanGuard {
+            max_epsilon_coef: coef,
+            ..Default::default()
+        })
+    };
+    assert_eq!(
+        eps(&with(Tolerance::EpsilonCoef(0.01), own(0.002))),
+        (0.002 * range) as f32 as f64
+    );
+    for bad in [-1.0, f64::NAN, f64::INFINITY] {
+        let e =
+            SessionSettings::resolve(Some(&with(Tolerance::Epsilon(0.1), own(bad))), &policy, 256)
+                .unwrap_err();
+        assert!(e.contains("guard.max_epsilon_coef is"), "{bad}: {e}");
+    }
+    let mut unscaled = policy.clone();
+    unscaled.manifest.value_scale = None;
+    let e = SessionSettings::resolve(
+        Some(&with(Tolerance::Epsilon(0.1), own(0.005))),
+        &unscaled,
+        256,
+    )
+    .unwrap_err();
+    assert!(e.contains("needs the policy's value scale"), "{e}");
 }

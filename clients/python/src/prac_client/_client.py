@@ -75,6 +75,7 @@ class Client(_core.ClientBase):
         sampled: bool | None = None,
         every_critic: bool = False,
         support_limit: float | None = None,
+        max_epsilon_coef: float | None = None,
     ) -> Session:
         """Opens a session (close it, or use it as a context manager). A seed means sampled
         actions unless sampled=False."""
@@ -88,6 +89,7 @@ class Client(_core.ClientBase):
             sampled=sampled,
             every_critic=every_critic,
             support_limit=support_limit,
+            max_epsilon_coef=max_epsilon_coef,
         )
         return Session(self, self._call(self._stub.OpenSession, request), policy)
 

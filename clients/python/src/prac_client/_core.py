@@ -61,6 +61,7 @@ def open_request(
     sampled: bool | None,
     every_critic: bool = False,
     support_limit: float | None = None,
+    max_epsilon_coef: float | None = None,
 ) -> pb.OpenSessionRequest:
     """OpenSession's request; invalid options are a ValueError before any call."""
     options = session_options(
@@ -72,6 +73,7 @@ def open_request(
         sampled=sampled,
         every_critic=every_critic,
         support_limit=support_limit,
+        max_epsilon_coef=max_epsilon_coef,
     )
     return pb.OpenSessionRequest(policy=policy, options=options)
 

@@ -17,10 +17,11 @@ def session_options(
     sampled: bool | None,
     every_critic: bool = False,
     support_limit: float | None = None,
+    max_epsilon_coef: float | None = None,
 ) -> pb.SessionOptions:
     """`growth` is ("grow", k) / ("fixed", n) or "grow 2" / "fixed:8". A seed implies sampled.
-    every_critic and support_limit set the guard (prac.v1.PlanGuard); without them the server's
-    default, the paper's test."""
+    every_critic, support_limit and max_epsilon_coef set the guard (prac.v1.PlanGuard); without
+    them the policy's default_guard."""
     options = pb.SessionOptions()
     if epsilon is not None and epsilon_coef is not None:
         raise ValueError("give epsilon or epsilon_coef, not both")
@@ -41,11 +42,14 @@ def session_options(
     options.sampled = bool(sampled) if sampled is not None else seed is not None
     if seed is not None:
         options.seed = seed
-    if every_critic or support_limit is not None:
+    if every_critic or support_limit is not None or max_epsilon_coef is not None:
         if support_limit is not None and not support_limit >= 0:
             raise ValueError(f"support_limit must be >= 0, got {support_limit}")
+        if max_epsilon_coef is not None and not max_epsilon_coef >= 0:
+            raise ValueError(f"max_epsilon_coef must be >= 0, got {max_epsilon_coef}")
         options.guard.every_critic = bool(every_critic)
         options.guard.support_limit = float(support_limit or 0.0)
+        options.guard.max_epsilon_coef = float(max_epsilon_coef or 0.0)
     return options
 
 

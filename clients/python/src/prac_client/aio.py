@@ -66,6 +66,7 @@ class Client(_core.ClientBase):
         sampled: bool | None = None,
         every_critic: bool = False,
         support_limit: float | None = None,
+        max_epsilon_coef: float | None = None,
     ) -> _Opening:
         """`await client.session(...)` or `async with client.session(...) as session`."""
         request = _core.open_request(
@@ -78,6 +79,7 @@ class Client(_core.ClientBase):
             sampled=sampled,
             every_critic=every_critic,
             support_limit=support_limit,
+            max_epsilon_coef=max_epsilon_coef,
         )
         return _Opening(self, request)
 

@@ -28,10 +28,12 @@ class PlanGuard:
 
     every_critic: bool
     support_limit: float
+    # Not a break: the session's eps is held to at most this coefficient (0: no limit).
+    max_epsilon_coef: float = 0.0
 
     @staticmethod
     def from_proto(g: pb.PlanGuard) -> PlanGuard:
-        return PlanGuard(g.every_critic, g.support_limit)
+        return PlanGuard(g.every_critic, g.support_limit, g.max_epsilon_coef)
 
 
 @dataclass(frozen=True)

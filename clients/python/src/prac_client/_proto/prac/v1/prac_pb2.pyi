@@ -73,12 +73,14 @@ class SessionOptions(_message.Message):
     def __init__(self, epsilon: _Optional[float] = ..., epsilon_coef: _Optional[float] = ..., grow: _Optional[int] = ..., fixed: _Optional[int] = ..., max_horizon: _Optional[int] = ..., sampled: _Optional[bool] = ..., seed: _Optional[int] = ..., guard: _Optional[_Union[PlanGuard, _Mapping]] = ...) -> None: ...
 
 class PlanGuard(_message.Message):
-    __slots__ = ("every_critic", "support_limit")
+    __slots__ = ("every_critic", "support_limit", "max_epsilon_coef")
     EVERY_CRITIC_FIELD_NUMBER: _ClassVar[int]
     SUPPORT_LIMIT_FIELD_NUMBER: _ClassVar[int]
+    MAX_EPSILON_COEF_FIELD_NUMBER: _ClassVar[int]
     every_critic: bool
     support_limit: float
-    def __init__(self, every_critic: _Optional[bool] = ..., support_limit: _Optional[float] = ...) -> None: ...
+    max_epsilon_coef: float
+    def __init__(self, every_critic: _Optional[bool] = ..., support_limit: _Optional[float] = ..., max_epsilon_coef: _Optional[float] = ...) -> None: ...
 
 class OpenSessionRequest(_message.Message):
     __slots__ = ("policy", "options", "resume")
