@@ -63,60 +63,59 @@ def test_the_baseline_holds_eps_to_a_bundles_limit_as_prac_serve_does(tmp_path: 
     # The toy bundle's V_pi - V_rand is 20: the limit 0.001 holds eps to 0.02.
     write_toy_bundle(tmp_path, default_guard={"support_limit": 0.5, "max_epsilon_coef": 0.001})
     server = Server(tmp_path)
+    try:
+        baseline, address = start_baseline(tmp_path)
+        try:
+            with Client(server.address, timeout=10) as ours, Client(address, timeout=10) as theirs:
+                for client in (ours, theirs):
+                    (info,) = client.policies()
+                    assert info.default_guard.max_epsilon_coef == 0.001
+                rng = np.random.default_rng(7)
+                # Above the limit (held), below it (as asked), and the paper's test (no limit).
+                for options, expected in (
+                    ({"epsilon_coef": 0.01}, 0.02),
+                    ({"epsilon": 1.0}, 0.02),
+                    ({"epsilon": 0.005}, 0.005),
+                    ({"epsilon": 1.0, "support_limit": 0.0}, 1.0),
+                ):
+                    a = ours.session("pendulum", growth="grow 2", max_horizon=12, **options)
+                    b = theirs.session("pendulum", growth="grow 2", max_horizon=12, **options)
+                    assert a.options.epsilon == b.options.epsilon == pytest.approx(expected, rel=1e-6), options
+                    assert a.options.guard == b.options.guard, options
+                    obs = rng.uniform(-1, 1, 3)
+                    for t in range(60):
+                        ra, rb = a.step(obs, new_episode=t == 0), b.step(obs, new_episode=t == 0)
+                        np.testing.assert_allclose(ra.forecast_actions, rb.forecast_actions, atol=1e-3)
+                        assert (ra.kept, ra.broke_at, ra.f_t) == (rb.kept, rb.broke_at, rb.f_t), (options, t)
+                        obs = np.clip(ra.forecast_observations[0] + rng.uniform(-0.3, 0.3, 3), -3, 3)
+                    a.close()
+                    b.close()
+        finally:
+            baseline.terminate()
+            baseline.wait(10)
+    finally:
+        server.stop()
+
+
+def start_baseline(bundles: pathlib.Path) -> tuple[subprocess.Popen[str], str]:
+    """The Python baseline serving `bundles`, and its address."""
     baseline = subprocess.Popen(
-        [sys.executable, str(REPO / "clients" / "python" / "baseline" / "server.py"), "--bundles", str(tmp_path), "--listen", "127.0.0.1:0"],
+        [sys.executable, str(REPO / "clients" / "python" / "baseline" / "server.py"), "--bundles", str(bundles), "--listen", "127.0.0.1:0"],
         stdout=subprocess.PIPE,
         text=True,
     )
-    try:
-        assert baseline.stdout is not None
-        line = baseline.stdout.readline()
-        assert line.startswith("listening on "), line
-        address = line.removeprefix("listening on ").strip()
-        with Client(server.address, timeout=10) as ours, Client(address, timeout=10) as theirs:
-            for client in (ours, theirs):
-                (info,) = client.policies()
-                assert info.default_guard.max_epsilon_coef == 0.001
-            rng = np.random.default_rng(7)
-            # Above the limit (held), below it (as asked), and the paper's test (no limit).
-            for options, expected in (
-                ({"epsilon_coef": 0.01}, 0.02),
-                ({"epsilon": 1.0}, 0.02),
-                ({"epsilon": 0.005}, 0.005),
-                ({"epsilon": 1.0, "support_limit": 0.0}, 1.0),
-            ):
-                a = ours.session("pendulum", growth="grow 2", max_horizon=12, **options)
-                b = theirs.session("pendulum", growth="grow 2", max_horizon=12, **options)
-                assert a.options.epsilon == b.options.epsilon == pytest.approx(expected, rel=1e-6), options
-                assert a.options.guard == b.options.guard, options
-                obs = rng.uniform(-1, 1, 3)
-                for t in range(60):
-                    ra, rb = a.step(obs, new_episode=t == 0), b.step(obs, new_episode=t == 0)
-                    np.testing.assert_allclose(ra.forecast_actions, rb.forecast_actions, atol=1e-3)
-                    assert (ra.kept, ra.broke_at, ra.f_t) == (rb.kept, rb.broke_at, rb.f_t), (options, t)
-                    obs = np.clip(ra.forecast_observations[0] + rng.uniform(-0.3, 0.3, 3), -3, 3)
-                a.close()
-                b.close()
-    finally:
-        baseline.terminate()
-        baseline.wait(10)
-        server.stop()
+    assert baseline.stdout is not None
+    line = baseline.stdout.readline()
+    assert line.startswith("listening on "), line
+    return baseline, line.removeprefix("listening on ").strip()
 
 
 def answers_alike(bundles: pathlib.Path, server: Server, bundle_default: bool = False) -> np.ndarray:
     """Steps both servers alike and compares every answer; returns prac serve's forecast
     observations. With `bundle_default`, no session sets a guard: the bundle's default_guard
     guards them all."""
-    baseline = subprocess.Popen(
-        [sys.executable, str(REPO / "clients" / "python" / "baseline" / "server.py"), "--bundles", str(bundles), "--listen", "127.0.0.1:0"],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
+    baseline, address = start_baseline(bundles)
     try:
-        assert baseline.stdout is not None
-        line = baseline.stdout.readline()
-        assert line.startswith("listening on "), line
-        address = line.removeprefix("listening on ").strip()
         rng = np.random.default_rng(5)
         breaks = guarded_breaks = 0
         forecasts: list[np.ndarray] = []
