@@ -93,26 +93,24 @@ fn column(text: &str, name: &str) -> Vec<f64> {
         .collect()
 }
 
-#[test]
-fn sweep_writes_sane_files_and_curves_draw() {
-    let dir = tempfile::tempdir().unwrap();
-    let out = sim(&[
-        "sweep",
-        "--policy",
-        "pendulum",
-        "--coefs",
-        "0,0.003,0.01",
-        "--episodes",
-        "20",
-        "--out",
-        dir.path().to_str().unwrap(),
-    ]);
+/// `prac-sim sweep --policy pendulum ARGS --out DIR`, which must succeed; its sweep.csv.
+fn pendulum_sweep(dir: &Path, args: &[&str]) -> String {
+    let mut all = vec!["sweep", "--policy", "pendulum"];
+    all.extend_from_slice(args);
+    all.extend_from_slice(&["--out", dir.to_str().unwrap()]);
+    let out = sim(&all);
     assert!(
         out.status.success(),
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let csv = std::fs::read_to_string(dir.path().join("sweep.csv")).unwrap();
+    std::fs::read_to_string(dir.join("sweep.csv")).unwrap()
+}
+
+#[test]
+fn sweep_writes_sane_files_and_curves_draw() {
+    let dir = tempfile::tempdir().unwrap();
+    let csv = pendulum_sweep(dir.path(), &["--coefs", "0,0.003,0.01", "--episodes", "20"]);
     let (np, np_std) = (column(&csv, "np"), column(&csv, "np_std"));
     let forecast = column(&csv, "forecast");
     let bound = column(&csv, "bound");
@@ -474,25 +472,17 @@ fn a_killed_client_takes_its_local_server_with_it() {
 #[test]
 fn a_sweep_reports_the_eps_a_guard_holds_it_to() {
     let dir = tempfile::tempdir().unwrap();
-    let out = sim(&[
-        "sweep",
-        "--policy",
-        "pendulum",
-        "--coefs",
-        "0.01",
-        "--episodes",
-        "5",
-        "--max-epsilon-coef",
-        "0.002",
-        "--out",
-        dir.path().to_str().unwrap(),
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let csv = pendulum_sweep(
+        dir.path(),
+        &[
+            "--coefs",
+            "0.01",
+            "--episodes",
+            "5",
+            "--max-epsilon-coef",
+            "0.002",
+        ],
     );
-    let csv = std::fs::read_to_string(dir.path().join("sweep.csv")).unwrap();
     // Asked: 0.01 x the sweep's V_pi - V_rand, a bound of 0.5. Held to 0.002 x the bundle's, its
     // bound is near 1 - 0.002 / (1 - 0.98) = 0.9 (the two ranges are measured apart).
     let bound = column(&csv, "bound")[0];
