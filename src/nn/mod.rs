@@ -1,7 +1,8 @@
 //! f32 multilayer perceptrons on nalgebra matrices, evaluated over a batch of states stored as rows
 //! (one state per row). One kernel serves a single state (a batch of one) and cross-session
-//! batches: weights are packed into panels of 16 outputs, and a tile of one panel by up to 6
-//! states (AVX2) or two panels by up to 12 states (AVX-512) keeps its accumulators in registers.
+//! batches: weights are packed into panels of 16 outputs, and a register tile (AVX2: 8-output
+//! vectors by rows, e.g. one panel by up to 6 states or 12 vectors of one state; AVX-512: two
+//! panels by up to 12 states) keeps its accumulators in registers.
 //! Buffers live in caller-owned scratch and only grow, so a forward allocates nothing once a batch
 //! size has been seen.
 
@@ -105,6 +106,9 @@ pub(crate) struct Dense {
 
 /// Outputs per panel of packed weights: two AVX2 registers or one AVX-512 register.
 const PANEL: usize = 16;
+/// Outputs per AVX2 register: half a panel.
+#[cfg(target_arch = "x86_64")]
+const LANES: usize = 8;
 
 impl Dense {
     pub(crate) fn new(weight: DMatrix<f32>, bias: DVector<f32>) -> Dense {
@@ -216,25 +220,156 @@ impl Dense {
         }
     }
 
-    /// The AVX2 + FMA kernel: per panel of 16 outputs (in L1 while it lasts), tiles of up to 6
-    /// rows, 12 accumulators in registers.
+    /// The AVX2 + FMA kernel: tiles of consecutive 8-output vectors by rows, about 12
+    /// accumulators in registers. Each output's chain of FMAs is serial (the bits depend on its
+    /// order), so a tile needs about 8 independent chains to cover the FMA's latency: one row
+    /// takes 12 vectors at a time, two rows 6, three 4, four 3; more rows take two vectors (one
+    /// panel, in L1 while the rows stream) by up to 6 rows, and a lone vector (a head of at most
+    /// 8 outputs) up to 12 rows, so a narrow head computes no padding beyond its 8 lanes.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
     unsafe fn forward_avx2<const RELU: bool>(&self, inputs: &[f32], outputs: &mut [f32]) {
         let (out, inp) = (self.output_dim(), self.input_dim());
         let n = inputs.len() / inp;
-        for tile in self.tiles(1) {
-            for row in (0..n).step_by(6) {
+        let vectors = out.div_ceil(LANES);
+        let group = match n {
+            1 => 12,
+            2 => 6,
+            3 => 4,
+            4 => 3,
+            _ => 2,
+        };
+        let mut vector = 0;
+        while vector < vectors {
+            let width = group.min(vectors - vector);
+            let most_rows = match (n, width) {
+                (1..=4, _) => n,
+                (_, 1) => 12,
+                _ => 6,
+            };
+            // Rows split evenly (8 as 4 + 4, not 6 + 2), so no tile is left with few chains.
+            let rows = n.div_ceil(n.div_ceil(most_rows));
+            let mut row = 0;
+            while row < n {
+                let r = rows.min(n - row);
                 let (x, y) = (&inputs[row * inp..], &mut outputs[row * out..]);
                 // SAFETY: the CPU has AVX2 and FMA (this function's features).
-                unsafe {
-                    match n - row {
-                        6.. => tile.avx2::<6, RELU>(x, y),
-                        5 => tile.avx2::<5, RELU>(x, y),
-                        4 => tile.avx2::<4, RELU>(x, y),
-                        3 => tile.avx2::<3, RELU>(x, y),
-                        2 => tile.avx2::<2, RELU>(x, y),
-                        _ => tile.avx2::<1, RELU>(x, y),
+                unsafe { self.avx2_tile::<RELU>(r, width, vector, x, y) };
+                row += r;
+            }
+            vector += width;
+        }
+    }
+
+    /// `rows` rows through `width` vectors from `vector` on, dispatched to a tile whose
+    /// accumulators the compiler keeps in registers.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn avx2_tile<const RELU: bool>(
+        &self,
+        rows: usize,
+        width: usize,
+        vector: usize,
+        x: &[f32],
+        y: &mut [f32],
+    ) {
+        macro_rules! tiles {
+            ($(($r:literal, $g:literal)),* $(,)?) => {
+                match (rows, width) {
+                    // SAFETY: the CPU has AVX2 and FMA (this function's features).
+                    $(($r, $g) => unsafe { self.avx2::<$r, $g, RELU>(vector, x, y) },)*
+                    _ => unreachable!("{rows} rows by {width} vectors"),
+                }
+            };
+        }
+        tiles!(
+            (1, 1),
+            (1, 2),
+            (1, 3),
+            (1, 4),
+            (1, 5),
+            (1, 6),
+            (1, 7),
+            (1, 8),
+            (1, 9),
+            (1, 10),
+            (1, 11),
+            (1, 12),
+            (2, 1),
+            (2, 2),
+            (2, 3),
+            (2, 4),
+            (2, 5),
+            (2, 6),
+            (3, 1),
+            (3, 2),
+            (3, 3),
+            (3, 4),
+            (4, 1),
+            (4, 2),
+            (4, 3),
+            (5, 1),
+            (5, 2),
+            (6, 1),
+            (6, 2),
+            (7, 1),
+            (8, 1),
+            (9, 1),
+            (10, 1),
+            (11, 1),
+            (12, 1),
+        )
+    }
+
+    /// R rows through G consecutive 8-output vectors from `vector` on: `x` and `y` start at the
+    /// first of the rows. A vector is one half of a packed panel.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn avx2<const R: usize, const G: usize, const RELU: bool>(
+        &self,
+        vector: usize,
+        x: &[f32],
+        y: &mut [f32],
+    ) {
+        use std::arch::x86_64::*;
+        let (out, inp) = (self.output_dim(), self.input_dim());
+        assert!(vector + G <= out.div_ceil(LANES));
+        assert!(x.len() >= R * inp && y.len() >= R * out);
+        // Where each vector's weights for input 0 start: [panel][input][PANEL], the vector's half.
+        let start: [usize; G] =
+            std::array::from_fn(|g| (vector + g) / 2 * inp * PANEL + (vector + g) % 2 * LANES);
+        let (w, xs) = (self.packed.as_ptr(), x.as_ptr());
+        // SAFETY: every vector lies inside a panel (asserted above), and j < inp and r < R keep
+        // every read inside the lengths checked above; every store writes only outputs that exist.
+        unsafe {
+            let bias: [__m256; G] = std::array::from_fn(|g| {
+                _mm256_loadu_ps(self.padded_bias.as_ptr().add((vector + g) * LANES))
+            });
+            let mut acc = [bias; R];
+            for j in 0..inp {
+                let wv: [__m256; G] =
+                    std::array::from_fn(|g| _mm256_loadu_ps(w.add(start[g] + j * PANEL)));
+                for (r, acc) in acc.iter_mut().enumerate() {
+                    let xv = _mm256_broadcast_ss(&*xs.add(r * inp + j));
+                    for g in 0..G {
+                        acc[g] = _mm256_fmadd_ps(wv[g], xv, acc[g]);
+                    }
+                }
+            }
+            let zero = _mm256_setzero_ps();
+            let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+            for (r, acc) in acc.iter().enumerate() {
+                for (g, &acc) in acc.iter().enumerate() {
+                    // max(acc, 0) gives 0 for NaN and -0, as `relu` does.
+                    let acc = if RELU { _mm256_max_ps(acc, zero) } else { acc };
+                    let first = (vector + g) * LANES;
+                    let row = y.as_mut_ptr().add(r * out + first);
+                    let present = LANES.min(out - first);
+                    if present == LANES {
+                        _mm256_storeu_ps(row, acc);
+                    } else {
+                        let mask = _mm256_cmpgt_epi32(_mm256_set1_epi32(present as i32), lane);
+                        _mm256_maskstore_ps(row, mask, acc);
                     }
                 }
             }
@@ -304,61 +439,6 @@ struct Tile<'a> {
 
 #[cfg(target_arch = "x86_64")]
 impl Tile<'_> {
-    /// Outputs of this tile's first panel that exist (the last panel may be partial).
-    fn width(&self) -> usize {
-        PANEL.min(self.out - self.first)
-    }
-
-    /// Writes one row's accumulated outputs of a partial panel, only those that exist.
-    fn store(&self, row: &mut [f32], values: &[f32; PANEL]) {
-        let width = self.width();
-        row[self.first..self.first + width].copy_from_slice(&values[..width]);
-    }
-
-    /// R rows: `x` and `y` start at the first of them.
-    #[target_feature(enable = "avx2,fma")]
-    unsafe fn avx2<const R: usize, const RELU: bool>(&self, x: &[f32], y: &mut [f32]) {
-        use std::arch::x86_64::*;
-        let (inp, out) = (self.inp, self.out);
-        assert!(self.panel.len() >= inp * PANEL && self.bias.len() >= PANEL);
-        assert!(x.len() >= R * inp && y.len() >= (R - 1) * out + self.first + self.width());
-        let (w, xs) = (self.panel.as_ptr(), x.as_ptr());
-        // SAFETY: j < inp and r < R keep every read inside the lengths checked above.
-        unsafe {
-            let mut lo = [_mm256_loadu_ps(self.bias.as_ptr()); R];
-            let mut hi = [_mm256_loadu_ps(self.bias.as_ptr().add(8)); R];
-            for j in 0..inp {
-                let w_lo = _mm256_loadu_ps(w.add(j * PANEL));
-                let w_hi = _mm256_loadu_ps(w.add(j * PANEL + 8));
-                for r in 0..R {
-                    let xv = _mm256_broadcast_ss(&*xs.add(r * inp + j));
-                    lo[r] = _mm256_fmadd_ps(w_lo, xv, lo[r]);
-                    hi[r] = _mm256_fmadd_ps(w_hi, xv, hi[r]);
-                }
-            }
-            if RELU {
-                let zero = _mm256_setzero_ps();
-                for r in 0..R {
-                    // max(acc, 0) gives 0 for NaN and -0, as `relu` does.
-                    lo[r] = _mm256_max_ps(lo[r], zero);
-                    hi[r] = _mm256_max_ps(hi[r], zero);
-                }
-            }
-            let mut values = [0.0f32; PANEL];
-            for r in 0..R {
-                if self.width() == PANEL {
-                    let row = y.as_mut_ptr().add(r * out + self.first);
-                    _mm256_storeu_ps(row, lo[r]);
-                    _mm256_storeu_ps(row.add(8), hi[r]);
-                } else {
-                    _mm256_storeu_ps(values.as_mut_ptr(), lo[r]);
-                    _mm256_storeu_ps(values.as_mut_ptr().add(8), hi[r]);
-                    self.store(&mut y[r * out..], &values);
-                }
-            }
-        }
-    }
-
     /// Every one of `n` rows through this tile's P panels, 12 rows at a time.
     #[target_feature(enable = "avx512f")]
     unsafe fn avx512_rows<const P: usize, const RELU: bool>(
@@ -885,7 +965,8 @@ mod tests {
         // one input; with and without the fused ReLU, and a NaN input in the first row.
         let bits = |v: &[f32]| v.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
         // Few rows take wide tiles: 133 = 8 x 16 + 5 (a full 8-panel tile, then a partial
-        // panel alone), 100 = 6 x 16 + 4 (a 7-panel tile ending in a partial panel).
+        // panel alone), 100 = 6 x 16 + 4 (a 7-panel tile ending in a partial panel). Heads of 1
+        // and 6 outputs take one AVX2 vector by up to 12 rows; 8, 9 and 11 rows split evenly.
         for (out, inp) in [
             (37, 23),
             (53, 7),
@@ -894,9 +975,12 @@ mod tests {
             (256, 18),
             (133, 11),
             (100, 9),
+            (1, 256),
+            (6, 256),
+            (64, 64),
         ] {
             let d = layer(out, inp, 5.0);
-            for n in [1, 2, 3, 4, 5, 6, 7, 12, 13, 25] {
+            for n in [1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 12, 13, 25] {
                 let mut x: Vec<f32> = (0..n * inp).map(|i| (i as f32 * 0.29).sin()).collect();
                 x[inp - 1] = f32::NAN;
                 let mut plain = vec![0.0; n * out];
