@@ -223,9 +223,10 @@ impl Dense {
     /// The AVX2 + FMA kernel: tiles of consecutive 8-output vectors by rows, about 12
     /// accumulators in registers. Each output's chain of FMAs is serial (the bits depend on its
     /// order), so a tile needs about 8 independent chains to cover the FMA's latency: one row
-    /// takes 12 vectors at a time, two rows 6, three 4, four 3; more rows take two vectors (one
-    /// panel, in L1 while the rows stream) by up to 6 rows, and a lone vector (a head of at most
-    /// 8 outputs) up to 12 rows, so a narrow head computes no padding beyond its 8 lanes.
+    /// takes 12 vectors at a time, two rows 4, three 3 (wider tiles of several rows spill
+    /// registers); more rows take two vectors (one panel, in L1 while the rows stream) by up to
+    /// 6 rows, and a lone vector (a head of at most 8 outputs) up to 12 rows, so a narrow head
+    /// computes no padding beyond its 8 lanes.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
     unsafe fn forward_avx2<const RELU: bool>(&self, inputs: &[f32], outputs: &mut [f32]) {
@@ -234,16 +235,15 @@ impl Dense {
         let vectors = out.div_ceil(LANES);
         let group = match n {
             1 => 12,
-            2 => 6,
-            3 => 4,
-            4 => 3,
+            2 => 4,
+            3 => 3,
             _ => 2,
         };
         let mut vector = 0;
         while vector < vectors {
             let width = group.min(vectors - vector);
             let most_rows = match (n, width) {
-                (1..=4, _) => n,
+                (1..=3, _) => n,
                 (_, 1) => 12,
                 _ => 6,
             };
@@ -299,15 +299,11 @@ impl Dense {
             (2, 2),
             (2, 3),
             (2, 4),
-            (2, 5),
-            (2, 6),
             (3, 1),
             (3, 2),
             (3, 3),
-            (3, 4),
             (4, 1),
             (4, 2),
-            (4, 3),
             (5, 1),
             (5, 2),
             (6, 1),
