@@ -149,18 +149,36 @@ pub struct Trainer {
     pub restored_transitions: Option<usize>,
 }
 
-fn append(path: &Path, header: &str) -> anyhow::Result<File> {
-    widen_csv(path, header)?;
-    let new = !path.exists() || std::fs::metadata(path)?.len() == 0;
-    let mut file = OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(path)
-        .with_context(|| format!("opening {}", path.display()))?;
-    if new {
-        writeln!(file, "{header}")?;
+/// A CSV a run appends rows to. Each row opens the file afresh: a run holding it open would,
+/// once the file is replaced under it (a `git checkout` or `git stash` of runs/, an editor's
+/// save), write every later row into the unlinked old file, where nobody can read them.
+pub(crate) struct CsvLog {
+    path: PathBuf,
+}
+
+impl CsvLog {
+    /// Opens `path` for appending, writing `header` first into a new or empty file.
+    pub(crate) fn open(path: &Path, header: &str) -> anyhow::Result<CsvLog> {
+        widen_csv(path, header)?;
+        let log = CsvLog {
+            path: path.to_path_buf(),
+        };
+        if !path.exists() || std::fs::metadata(path)?.len() == 0 {
+            log.row(format_args!("{header}"))?;
+        }
+        Ok(log)
     }
-    Ok(file)
+
+    /// Appends one row, in one write.
+    pub(crate) fn row(&self, row: std::fmt::Arguments<'_>) -> anyhow::Result<()> {
+        let mut file = OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&self.path)
+            .with_context(|| format!("opening {}", self.path.display()))?;
+        file.write_all(format!("{row}\n").as_bytes())
+            .with_context(|| format!("writing {}", self.path.display()))
+    }
 }
 
 /// A CSV written with fewer of `header`'s columns (an earlier version's) takes the new header,
@@ -343,8 +361,8 @@ impl Trainer {
             let episodes = eval::random_episodes(self.env.as_mut(), gamma, 20, self.options.seed)?;
             self.progress.v_rand = Some(eval::Summary::of_episodes(&episodes).discounted_mean);
         }
-        let mut csv = append(&self.options.csv, CSV_HEADER)?;
-        let mut eval_csv = append(&self.options.eval_csv, EVAL_CSV_HEADER)?;
+        let csv = CsvLog::open(&self.options.csv, CSV_HEADER)?;
+        let eval_csv = CsvLog::open(&self.options.eval_csv, EVAL_CSV_HEADER)?;
         let bar = super::progress_bar(
             self.options.steps,
             self.progress.step,
@@ -448,8 +466,7 @@ impl Trainer {
                 let (ret, disc, t) = (totals.ret, totals.discounted, totals.steps);
                 let l = &self.progress.last_losses;
                 let epsilon = self.agent.as_ref().map_or(0.0, |a| a.config.epsilon);
-                writeln!(
-                    csv,
+                csv.row(format_args!(
                     "{},{},{ret},{disc},{t},{forecast},{epsilon},{},{},{},{}",
                     self.progress.step,
                     self.progress.episode,
@@ -457,7 +474,7 @@ impl Trainer {
                     l.actor,
                     self.progress.last_model_loss,
                     l.ent_coef
-                )?;
+                ))?;
                 push_recent(&mut self.progress.recent_returns, ret);
                 push_recent(&mut self.progress.recent_forecasts, forecast);
                 self.progress.episode += 1;
@@ -467,8 +484,6 @@ impl Trainer {
                 self.start_episode(&obs, &mut evaluator);
                 // Checkpoints fall between episodes, so a resumed run starts a fresh one.
                 if last_checkpoint.elapsed() >= self.options.checkpoint_every {
-                    csv.flush()?;
-                    eval_csv.flush()?;
                     self.progress.seconds = seconds_before + started.elapsed().as_secs_f64();
                     self.checkpoint()?;
                     last_checkpoint = Instant::now();
@@ -489,11 +504,10 @@ impl Trainer {
                     .distance_mean
                     .map_or_else(String::new, |d| d.to_string());
                 let seconds = seconds_before + started.elapsed().as_secs_f64();
-                writeln!(
-                    eval_csv,
+                eval_csv.row(format_args!(
                     "{},{mean},{std},{dmean},{falls},{distance},{seconds:.1}",
                     self.progress.step
-                )?;
+                ))?;
                 bar.println(format!(
                     "step {}: deterministic evaluation return {mean:.1} +- {std:.1}, {falls} of {} ended early",
                     self.progress.step,
@@ -506,8 +520,6 @@ impl Trainer {
                 bar.set_message(self.status_line());
             }
         }
-        csv.flush()?;
-        eval_csv.flush()?;
         bar.finish_and_clear();
         self.progress.seconds = seconds_before + started.elapsed().as_secs_f64();
         self.checkpoint()?;

@@ -8,7 +8,7 @@ use rand_distr::StandardNormal;
 use super::model::ModelTrainer;
 use super::nets::{matrix, rows};
 use super::options::TrainOptions;
-use super::run::{Trainer, snapshot};
+use super::run::{CsvLog, Trainer, snapshot};
 use super::sac::{Batch, Sac, SacConfig};
 use crate::domains;
 use crate::plan::Networks;
@@ -624,4 +624,28 @@ fn layer_norm_critics_ship_in_pytorchs_layout_and_resume_only_with_the_flag() {
     let mut resumed = Trainer::new(options, true).unwrap();
     resumed.run().unwrap();
     assert_eq!(resumed.progress.step, 400);
+}
+
+#[test]
+fn a_csv_replaced_while_a_run_writes_it_gets_the_rows_that_follow() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("run.train.csv");
+    let log = CsvLog::open(&path, "step,return").unwrap();
+    log.row(format_args!("1,10")).unwrap();
+    // What `git checkout` does: a new file renamed over the one the run is writing.
+    let replacement = dir.path().join("checked-out.csv");
+    std::fs::write(&replacement, "step,return\n1,10\n").unwrap();
+    std::fs::rename(&replacement, &path).unwrap();
+    log.row(format_args!("2,20")).unwrap();
+    assert_eq!(
+        std::fs::read_to_string(&path).unwrap(),
+        "step,return\n1,10\n2,20\n"
+    );
+    // A file that exists with rows keeps them and takes no second header.
+    let again = CsvLog::open(&path, "step,return").unwrap();
+    again.row(format_args!("3,30")).unwrap();
+    assert_eq!(
+        std::fs::read_to_string(&path).unwrap(),
+        "step,return\n1,10\n2,20\n3,30\n"
+    );
 }
