@@ -232,6 +232,9 @@ impl Dense {
     unsafe fn forward_avx2<const RELU: bool>(&self, inputs: &[f32], outputs: &mut [f32]) {
         let (out, inp) = (self.output_dim(), self.input_dim());
         let n = inputs.len() / inp;
+        if n == 0 {
+            return;
+        }
         let vectors = out.div_ceil(LANES);
         let group = match n {
             1 => 12,
@@ -952,6 +955,20 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn a_batch_of_no_rows_computes_nothing() {
+        let d = layer(37, 23, 4.0);
+        let mut none: Vec<f32> = Vec::new();
+        d.forward_rows(&[], &mut none);
+        d.forward_rows_relu(&[], &mut none);
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+            // SAFETY: the CPU has the features.
+            unsafe { d.forward_avx2::<true>(&[], &mut none) };
+        }
+        assert!(none.is_empty());
     }
 
     #[test]
