@@ -761,7 +761,8 @@ impl Mlp {
         // cost no refilling. Hidden layers hold one block; the last layer holds every row.
         let block = n.min(ROW_BLOCK);
         for (i, dense) in self.layers.iter().enumerate() {
-            let len = if i == last { n } else { block } * dense.output_dim();
+            let held = if i == last { n } else { block };
+            let len = held * dense.output_dim();
             if scratch.outputs[i].len() < len {
                 scratch.outputs[i].resize(len, 0.0);
             }
