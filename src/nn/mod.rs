@@ -623,7 +623,8 @@ pub(crate) struct Mlp {
 /// activations (64 KB each) and a 256x256 layer's weights (256 KB) fit a 512 KB L2 together.
 const ROW_BLOCK: usize = 64;
 
-/// Per-layer outputs of a forward; they grow to the largest batch seen and are reused.
+/// Per-layer outputs of a forward, reused: hidden layers hold at most [`ROW_BLOCK`] rows, and the
+/// last layer grows to the largest batch seen.
 #[derive(Clone, Debug, Default)]
 pub(crate) struct MlpScratch {
     outputs: Vec<Vec<f32>>,
@@ -1069,10 +1070,12 @@ mod tests {
     fn scratch_stops_allocating_once_grown() {
         let mlp = chain();
         let mut scratch = mlp.scratch();
-        mlp.forward_rows(&[0.5; 5 * 16], &mut scratch);
+        // 150 rows take three row blocks; 3 and 16 fewer than one.
+        mlp.forward_rows(&[0.5; 5 * 150], &mut scratch);
         let pointers: Vec<*const f32> = scratch.outputs.iter().map(|o| o.as_ptr()).collect();
         mlp.forward_rows(&[0.5; 5 * 3], &mut scratch);
         mlp.forward_rows(&[0.5; 5 * 16], &mut scratch);
+        mlp.forward_rows(&[0.5; 5 * 150], &mut scratch);
         let after: Vec<*const f32> = scratch.outputs.iter().map(|o| o.as_ptr()).collect();
         assert_eq!(pointers, after);
     }
