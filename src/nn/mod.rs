@@ -724,15 +724,18 @@ impl Mlp {
                 .layers
                 .iter()
                 .enumerate()
-                .map(|(i, d)| {
-                    let held = if i + 1 == self.layers.len() {
-                        rows
-                    } else {
-                        rows.min(ROW_BLOCK)
-                    };
-                    Vec::with_capacity(held * d.output_dim())
-                })
+                .map(|(i, d)| Vec::with_capacity(self.rows_held(i, rows) * d.output_dim()))
                 .collect(),
+        }
+    }
+
+    /// Rows layer `i`'s buffer holds for a batch of `n`: hidden layers one row block, the last
+    /// layer every row.
+    fn rows_held(&self, i: usize, n: usize) -> usize {
+        if i + 1 == self.layers.len() {
+            n
+        } else {
+            n.min(ROW_BLOCK)
         }
     }
 
@@ -759,18 +762,16 @@ impl Mlp {
         scratch.outputs.resize_with(self.layers.len(), Vec::new);
         let out_dim = self.layers[last].output_dim();
         // Buffers only grow: a smaller batch uses their start, so batch sizes that come and go
-        // cost no refilling. Hidden layers hold one block; the last layer holds every row.
-        let block = n.min(ROW_BLOCK);
+        // cost no refilling.
         for (i, dense) in self.layers.iter().enumerate() {
-            let held = if i == last { n } else { block };
-            let len = held * dense.output_dim();
+            let len = self.rows_held(i, n) * dense.output_dim();
             if scratch.outputs[i].len() < len {
                 scratch.outputs[i].resize(len, 0.0);
             }
         }
         let mut start = 0;
         while start < n {
-            let rows = block.min(n - start);
+            let rows = ROW_BLOCK.min(n - start);
             let x = &inputs[start * self.input_dim..(start + rows) * self.input_dim];
             self.forward_block(x, start, rows, &mut scratch.outputs);
             start += rows;
