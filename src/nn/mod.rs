@@ -109,6 +109,9 @@ const PANEL: usize = 16;
 /// Outputs per AVX2 register: half a panel.
 #[cfg(target_arch = "x86_64")]
 const LANES: usize = 8;
+/// Layers of at most this many outputs (heads) put 8 rows in a vector's lanes, not 8 outputs.
+#[cfg(target_arch = "x86_64")]
+const ROWS_IN_LANES_OUTPUTS: usize = 4;
 
 impl Dense {
     pub(crate) fn new(weight: DMatrix<f32>, bias: DVector<f32>) -> Dense {
@@ -226,7 +229,8 @@ impl Dense {
     /// takes 12 vectors at a time, two rows 4, three 3 (wider tiles of several rows spill
     /// registers); more rows take two vectors (one panel, in L1 while the rows stream) by up to
     /// 6 rows, and a lone vector (a head of at most 8 outputs) up to 12 rows, so a narrow head
-    /// computes no padding beyond its 8 lanes.
+    /// computes no padding beyond its 8 lanes. A head of at most 4 outputs puts 8 rows in the
+    /// lanes instead, while 8 rows or more are left.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
     unsafe fn forward_avx2<const RELU: bool>(&self, inputs: &[f32], outputs: &mut [f32]) {
@@ -242,6 +246,16 @@ impl Dense {
             3 => 3,
             _ => 2,
         };
+        if out <= ROWS_IN_LANES_OUTPUTS && n >= LANES {
+            let lanes = n / LANES * LANES;
+            // SAFETY: the CPU has AVX2 and FMA (this function's features).
+            unsafe { self.avx2_rows_in_lanes::<RELU>(lanes, inputs, outputs) };
+            // SAFETY: as above; the rest is fewer than 8 rows, so this does not come back here.
+            unsafe {
+                self.forward_avx2::<RELU>(&inputs[lanes * inp..], &mut outputs[lanes * out..])
+            };
+            return;
+        }
         let mut vector = 0;
         while vector < vectors {
             let width = group.min(vectors - vector);
@@ -369,6 +383,106 @@ impl Dense {
                     } else {
                         let mask = _mm256_cmpgt_epi32(_mm256_set1_epi32(present as i32), lane);
                         _mm256_maskstore_ps(row, mask, acc);
+                    }
+                }
+            }
+        }
+    }
+
+    /// A narrow layer (a head) with rows in the lanes: 8 rows per vector, one vector per output,
+    /// so no lane computes padding. Each lane runs its row's chain over the inputs in order, the
+    /// same bits as the scalar chain. Takes the first `n` rows, a multiple of 8.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn avx2_rows_in_lanes<const RELU: bool>(
+        &self,
+        n: usize,
+        inputs: &[f32],
+        outputs: &mut [f32],
+    ) {
+        macro_rules! widths {
+            ($($o:literal),*) => {
+                match self.output_dim() {
+                    // SAFETY: the CPU has AVX2 and FMA (this function's features).
+                    $($o => unsafe { self.avx2_lanes::<$o, RELU>(n, inputs, outputs) },)*
+                    out => unreachable!("{out} outputs with rows in lanes"),
+                }
+            };
+        }
+        widths!(1, 2, 3, 4)
+    }
+
+    /// [`Dense::avx2_rows_in_lanes`] for O outputs. Four inputs of 8 rows at a time are
+    /// transposed in registers: row r's inputs j..j+4 and row r+4's load as one vector, and a
+    /// 4x4 transpose in each 128-bit half leaves input j of the 8 rows in one vector.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn avx2_lanes<const O: usize, const RELU: bool>(
+        &self,
+        n: usize,
+        inputs: &[f32],
+        outputs: &mut [f32],
+    ) {
+        use std::arch::x86_64::*;
+        let inp = self.input_dim();
+        assert!(O == self.output_dim() && O <= PANEL && n.is_multiple_of(LANES));
+        assert!(inputs.len() >= n * inp && outputs.len() >= n * O);
+        // One panel: output o's weight for input j is packed[j * PANEL + o].
+        let w = self.packed.as_ptr();
+        // SAFETY: rows < n and j < inp keep every read inside the lengths checked above, and
+        // o < O <= PANEL inside the one panel; every store is inside `outputs`.
+        unsafe {
+            for first in (0..n).step_by(LANES) {
+                let x = inputs.as_ptr().add(first * inp);
+                let mut acc = [_mm256_setzero_ps(); O];
+                for (o, acc) in acc.iter_mut().enumerate() {
+                    *acc = _mm256_set1_ps(self.bias[o]);
+                }
+                // Macros, not closures: a closure would not inherit this function's features,
+                // and the intrinsics would not be inlined into it.
+                macro_rules! fma {
+                    ($j:expr, $column:expr) => {{
+                        let column = $column;
+                        for (o, acc) in acc.iter_mut().enumerate() {
+                            let weight = _mm256_broadcast_ss(&*w.add($j * PANEL + o));
+                            *acc = _mm256_fmadd_ps(weight, column, *acc);
+                        }
+                    }};
+                }
+                let mut j = 0;
+                while j + 4 <= inp {
+                    let row = x.add(j);
+                    macro_rules! pair {
+                        ($r:expr) => {
+                            _mm256_loadu2_m128(row.add(($r + 4) * inp), row.add($r * inp))
+                        };
+                    }
+                    let (a, b, c, d) = (pair!(0), pair!(1), pair!(2), pair!(3));
+                    let (ab_lo, ab_hi) = (_mm256_unpacklo_ps(a, b), _mm256_unpackhi_ps(a, b));
+                    let (cd_lo, cd_hi) = (_mm256_unpacklo_ps(c, d), _mm256_unpackhi_ps(c, d));
+                    fma!(j, _mm256_shuffle_ps::<0x44>(ab_lo, cd_lo));
+                    fma!(j + 1, _mm256_shuffle_ps::<0xEE>(ab_lo, cd_lo));
+                    fma!(j + 2, _mm256_shuffle_ps::<0x44>(ab_hi, cd_hi));
+                    fma!(j + 3, _mm256_shuffle_ps::<0xEE>(ab_hi, cd_hi));
+                    j += 4;
+                }
+                while j < inp {
+                    let row = x.add(j);
+                    let at = |r: usize| *row.add(r * inp);
+                    fma!(
+                        j,
+                        _mm256_setr_ps(at(0), at(1), at(2), at(3), at(4), at(5), at(6), at(7))
+                    );
+                    j += 1;
+                }
+                let zero = _mm256_setzero_ps();
+                for (o, &acc) in acc.iter().enumerate() {
+                    // max(acc, 0) gives 0 for NaN and -0, as `relu` does.
+                    let acc = if RELU { _mm256_max_ps(acc, zero) } else { acc };
+                    let mut rows = [0.0f32; LANES];
+                    _mm256_storeu_ps(rows.as_mut_ptr(), acc);
+                    for (r, &v) in rows.iter().enumerate() {
+                        *outputs.get_unchecked_mut((first + r) * O + o) = v;
                     }
                 }
             }
@@ -1020,6 +1134,8 @@ mod tests {
         // Few rows take wide tiles: 133 = 8 x 16 + 5 (a full 8-panel tile, then a partial
         // panel alone), 100 = 6 x 16 + 4 (a 7-panel tile ending in a partial panel). Heads of 1
         // and 6 outputs take one AVX2 vector by up to 12 rows; 8, 9 and 11 rows split evenly.
+        // Heads of 1-4 outputs put 8 rows in the lanes: inputs in whole transposes (256), with
+        // a tail (13) or only a tail (5), then the rows left over through the tiles.
         for (out, inp) in [
             (37, 23),
             (53, 7),
@@ -1031,9 +1147,12 @@ mod tests {
             (1, 256),
             (6, 256),
             (64, 64),
+            (2, 256),
+            (3, 13),
+            (4, 5),
         ] {
             let d = layer(out, inp, 5.0);
-            for n in [1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 12, 13, 25] {
+            for n in [1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 12, 13, 16, 25, 64] {
                 let mut x: Vec<f32> = (0..n * inp).map(|i| (i as f32 * 0.29).sin()).collect();
                 x[inp - 1] = f32::NAN;
                 let mut plain = vec![0.0; n * out];
