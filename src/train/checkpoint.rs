@@ -4,7 +4,8 @@
 //! refills it with its current policy before learning again (see docs/training.md).
 //!
 //! A checkpoint is written to `DIR.tmp` and renamed into place, so a run killed while saving
-//! still has its previous checkpoint.
+//! still has its previous checkpoint. One trainer at a time holds `DIR.lock`: two on one run would
+//! share `DIR.tmp` and append each other's rows to its CSVs.
 
 use std::path::{Path, PathBuf};
 
@@ -38,6 +39,33 @@ struct StateFile {
 
 fn sibling(dir: &Path, suffix: &str) -> PathBuf {
     PathBuf::from(format!("{}{suffix}", dir.display()))
+}
+
+/// Holds the run at `dir` for this trainer, or says that another one holds it. The lock is the
+/// operating system's, so a trainer that dies, however it ends, lets go of it.
+pub(crate) fn lock(dir: &Path) -> anyhow::Result<std::fs::File> {
+    let path = sibling(dir, ".lock");
+    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent)
+            .with_context(|| format!("creating {}", parent.display()))?;
+    }
+    let file = std::fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&path)
+        .with_context(|| format!("opening {}", path.display()))?;
+    match file.try_lock() {
+        Ok(()) => Ok(file),
+        Err(std::fs::TryLockError::WouldBlock) => anyhow::bail!(
+            "another trainer is running this run (it holds {}); one run takes one trainer, \
+             or their rows and checkpoints would mix",
+            path.display()
+        ),
+        Err(std::fs::TryLockError::Error(e)) => {
+            Err(e).with_context(|| format!("locking {}", path.display()))
+        }
+    }
 }
 
 /// Writes one saved part to a path.

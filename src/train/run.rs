@@ -147,6 +147,8 @@ pub struct Trainer {
     agent: Option<Planner<ChaCha8Rng>>,
     /// Transitions restored from the checkpoint's replay buffer on resume.
     pub restored_transitions: Option<usize>,
+    /// Held while the trainer lives: no second trainer takes this run.
+    _run_lock: File,
 }
 
 /// A CSV a run appends rows to. Each row opens the file afresh: a run holding it open would,
@@ -262,6 +264,8 @@ impl Trainer {
         if eval_env.spec() != env.spec() {
             bail!("the evaluation environment differs from the training one");
         }
+        // Before anything of the run is read or removed.
+        let run_lock = checkpoint::lock(&options.checkpoint_dir)?;
         let spec = env.spec().clone();
         let (od, ad) = (spec.obs_dim, spec.act_dim);
         let mut init_rng = ChaCha8Rng::seed_from_u64(options.seed);
@@ -345,6 +349,7 @@ impl Trainer {
             policy,
             agent,
             options,
+            _run_lock: run_lock,
         })
     }
 

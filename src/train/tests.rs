@@ -289,6 +289,44 @@ fn a_checkpoint_restores_the_exact_learner() {
 }
 
 #[test]
+fn a_run_takes_one_trainer_at_a_time() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut options = quick_options(&dir.path().join("p.safetensors"));
+    options.steps = 300;
+    let mut first = Trainer::new(options.clone(), false).unwrap();
+    first.run().unwrap();
+    first.checkpoint().unwrap();
+    let csv = std::fs::read(&options.csv).unwrap();
+    let state = std::fs::read(options.checkpoint_dir.join("state.json")).unwrap();
+    // Neither a resume nor a fresh start (which would delete the CSVs) takes the held run.
+    for resume in [true, false] {
+        let Err(e) = Trainer::new(options.clone(), resume) else {
+            panic!("a second trainer took the run (resume: {resume})");
+        };
+        assert!(
+            e.to_string()
+                .contains("another trainer is running this run"),
+            "{e}"
+        );
+    }
+    assert_eq!(std::fs::read(&options.csv).unwrap(), csv);
+    assert_eq!(
+        std::fs::read(options.checkpoint_dir.join("state.json")).unwrap(),
+        state
+    );
+    // A run with another name is another run.
+    let other = quick_options(&dir.path().join("q.safetensors"));
+    drop(Trainer::new(other, false).unwrap());
+    // Once the first trainer is gone the run resumes.
+    drop(first);
+    options.steps = 400;
+    let mut resumed = Trainer::new(options, true).unwrap();
+    assert_eq!(resumed.progress.step, 300);
+    resumed.run().unwrap();
+    assert_eq!(resumed.progress.step, 400);
+}
+
+#[test]
 fn a_resume_counts_the_restored_transitions_toward_the_warm_up() {
     let dir = tempfile::tempdir().unwrap();
     let options = quick_options(&dir.path().join("p.safetensors"));
@@ -302,6 +340,7 @@ fn a_resume_counts_the_restored_transitions_toward_the_warm_up() {
         let mut trainer = Trainer::new(options.clone(), false).unwrap();
         trainer.run().unwrap();
         trainer.checkpoint().unwrap();
+        drop(trainer);
         options.steps = steps + 100;
         let resumed = Trainer::new(options, true).unwrap();
         (resumed.restored_transitions, resumed.progress.fresh_steps)
@@ -479,6 +518,7 @@ fn norm_obs_runs_ship_their_statistics_and_resume_only_with_the_flag() {
     assert!(bundle.manifest.obs_bounds.is_some());
 
     let state = std::fs::read(options.checkpoint_dir.join("state.json")).unwrap();
+    drop(trainer);
     let mut plain = options.clone();
     plain.sac.norm_obs = false;
     plain.steps = 700;
@@ -613,6 +653,7 @@ fn layer_norm_critics_ship_in_pytorchs_layout_and_resume_only_with_the_flag() {
     let mut trainer = Trainer::new(options.clone(), false).unwrap();
     trainer.run().unwrap();
     trainer.checkpoint().unwrap();
+    drop(trainer);
     let mut plain = options.clone();
     plain.sac.critic_layer_norm = false;
     plain.steps = 400;
