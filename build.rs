@@ -8,6 +8,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let out_dir = std::path::PathBuf::from(std::env::var("OUT_DIR")?);
     tonic_prost_build::configure()
         .file_descriptor_set_path(out_dir.join("prac_descriptor.bin"))
+        // Small first buffers per call (src/proto/codec.rs).
+        .codec_path("crate::proto::codec::LeanCodec")
         .compile_protos(&["proto/prac/v1/prac.proto"], &["proto"])?;
     tonic_prost_build::configure()
         .compile_protos(&["proto/dm_env_rpc/v1/dm_env_rpc.proto"], &["proto"])?;

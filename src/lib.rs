@@ -50,5 +50,6 @@ pub use nn::{Kernel, kernel, use_kernel};
 pub mod proto {
     //! Generated from proto/prac/v1/prac.proto.
     tonic::include_proto!("prac.v1");
+    pub mod codec;
     pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("prac_descriptor");
 }

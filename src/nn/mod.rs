@@ -158,7 +158,7 @@ impl Dense {
     pub(crate) fn weight_row_major(&self) -> Vec<f32> {
         self.weight.transpose().as_slice().to_vec()
     }
-    fn flops(&self) -> u64 {
+    pub(crate) fn flops(&self) -> u64 {
         2 * (self.weight.nrows() * self.weight.ncols()) as u64
     }
 

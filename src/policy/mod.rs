@@ -94,6 +94,17 @@ impl Policy {
         self.critics.len()
     }
 
+    /// Bytes of every network's weights as held in memory (f32; biases and norms are small).
+    pub fn weight_bytes(&self) -> u64 {
+        let actor = self.actor.trunk.flops()
+            + self.actor.mu.flops()
+            + self.actor.log_std.as_ref().map_or(0, |d| d.flops());
+        let critics = self.critics.iter().map(Mlp::flops).sum::<u64>();
+        let model = self.model.as_ref().map_or(0, |m| m.net.flops());
+        // Two FLOPs per weight.
+        (actor + critics + model) / 2 * 4
+    }
+
     /// FLOPs of one evaluation of the actor (mean only), of one critic, and of the model.
     pub fn flops(&self) -> (u64, u64, u64) {
         let head = 2 * (self.actor.mu.weight().len()) as u64;

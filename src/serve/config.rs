@@ -146,6 +146,11 @@ settings! {
         "Interval of HTTP/2 PINGs to each client; 0s sends none.";
     keepalive_timeout: Duration = "20s", duration,
         "A PING unanswered for this long closes the connection.";
+    max_memory: u64 = "none", memory_size,
+        "Memory the server may use in all, e.g. 256Mi (binary units; KB, MB, GB are \
+        decimal); none (the default) takes the cgroup's limit (a container's memory limit), \
+        else the machine's memory. Connections, calls, watchers, sessions and request bytes \
+        are held within it (docs/operations.md, \"Memory budget\").";
 }
 
 /// A setting's default: "none" for no value; the others parse (a unit test checks them all).
@@ -183,6 +188,10 @@ pub fn duration(text: &str) -> Result<Duration, String> {
         .map_err(|e| format!("{text:?} is not a duration such as \"30s\" or \"5m\": {e}"))
 }
 
+fn memory_size(text: &str) -> Result<u64, String> {
+    super::memory::parse_size(text)
+}
+
 fn path(text: &str) -> Result<PathBuf, String> {
     Ok(PathBuf::from(text))
 }
@@ -216,6 +225,8 @@ pub struct ServeConfig {
     pub(crate) connections: Limits,
     /// Limits on requests in transit.
     pub(crate) requests: RequestLimits,
+    /// `--max-memory`; None follows the cgroup's limit, else the machine's memory.
+    pub(crate) max_memory: Option<u64>,
 }
 
 impl Default for ServeConfig {
@@ -320,6 +331,7 @@ impl ServeConfig {
                 bytes_total: s.max_request_bytes_total.expect(has),
                 max_message_bytes: s.max_message_bytes,
             },
+            max_memory: s.max_memory,
         };
         anyhow::ensure!(config.max_sessions > 0, "max_sessions must be at least 1");
         anyhow::ensure!(
@@ -452,7 +464,7 @@ mod tests {
             })
         );
         assert_eq!((c.auth_tokens, c.tls, c.metrics_listen), (None, None, None));
-        assert_eq!(c.health_listen, None);
+        assert_eq!((c.health_listen, c.max_memory), (None, None));
         assert_eq!(
             c.connections,
             Limits {
@@ -477,7 +489,10 @@ mod tests {
                 ..Default::default()
             })
         };
-        let c = resolve("batch_max = 0\nidle_timeout = \"0s\"\nstrict = true\n").unwrap();
+        let c =
+            resolve("batch_max = 0\nidle_timeout = \"0s\"\nstrict = true\nmax_memory = \"96Mi\"\n")
+                .unwrap();
+        assert_eq!(c.max_memory, Some(96 << 20));
         assert_eq!(c.batch, None, "batch_max = 0 turns batching off");
         assert_eq!(
             c.connections.idle_timeout, None,
@@ -489,6 +504,9 @@ mod tests {
             ("max_sessions = \"many\"", "max_sessions"),
             ("log_format = \"xml\"", "log_format"),
             ("strict = 1", "strict"),
+            ("max_memory = 0", "0 bytes"),
+            ("max_memory = \"-5Mi\"", "not a memory size"),
+            ("max_memory = \"lots\"", "max_memory"),
             ("tls_cert = \"cert.pem\"", "tls_key go together"),
             (
                 "listen = \"0.0.0.0:50051\"\nhealth_listen = \"0.0.0.0:50051\"",

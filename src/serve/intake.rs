@@ -31,6 +31,7 @@ use tonic::Status;
 
 use super::auth::Caller;
 use super::auth::Tokens;
+use super::memory::{Admission, Charge, ConnectionShare, Item, MemoryBudget, PendingCall};
 use super::metrics::Metrics;
 use super::transport::Probation;
 
@@ -107,6 +108,9 @@ pub(super) struct Intake {
     max_other: AtomicUsize,
     held: AtomicUsize,
     metrics: Arc<Metrics>,
+    /// The server's memory budget; None for the probes' port, which must answer whatever the
+    /// clients hold.
+    budget: Option<Arc<MemoryBudget>>,
 }
 
 impl Intake {
@@ -114,10 +118,12 @@ impl Intake {
         limits: RequestLimits,
         tokens: Option<Arc<Tokens>>,
         metrics: Arc<Metrics>,
+        budget: Option<Arc<MemoryBudget>>,
     ) -> Intake {
         Intake {
             limits,
             tokens,
+            budget,
             max_open_session: AtomicUsize::new(
                 limits.max_message_bytes.unwrap_or(MIN_DERIVED_MESSAGE),
             ),
@@ -157,6 +163,10 @@ impl Intake {
         self.max_open_session.load(Ordering::Relaxed)
     }
 
+    pub(super) fn budget(&self) -> Option<&Arc<MemoryBudget>> {
+        self.budget.as_ref()
+    }
+
     /// Bytes held now over all connections.
     pub(super) fn held(&self) -> usize {
         self.held.load(Ordering::Relaxed)
@@ -168,12 +178,12 @@ impl Intake {
     }
 
     /// Admits a call from its headers, or says why not; the admitted call's body comes through
-    /// the returned [`IntakeBody`].
+    /// the returned [`IntakeBody`], and its memory charge is held until its response ends.
     pub(super) fn admit(
         self: &Arc<Self>,
         connection: &Arc<ConnectionIntake>,
         request: http::Request<Incoming>,
-    ) -> Result<http::Request<IntakeBody>, Status> {
+    ) -> Result<(http::Request<IntakeBody>, Option<Charge>), Status> {
         let path = request.uri().path();
         let prac = path.starts_with(PRAC_PATH);
         let caller = match &self.tokens {
@@ -196,6 +206,15 @@ impl Intake {
         if prac && self.held() >= self.limits.bytes_total {
             return Err(self.refuse(server_full(self.limits.bytes_total)));
         }
+        let (charge, pending) = match &self.budget {
+            Some(budget) => {
+                let Admission { charge, pending } = budget
+                    .admit_call(&connection.share)
+                    .map_err(|s| self.refuse(s))?;
+                (Some(charge), pending)
+            }
+            None => (None, None),
+        };
         let streamed = STREAMED_REQUESTS.contains(&path);
         let now = Instant::now();
         let call_deadline = request
@@ -234,11 +253,15 @@ impl Intake {
             holding: None,
             messages: 0,
             failed: false,
+            reset: pending
+                .as_ref()
+                .map(|p| Box::pin(p.reset().cancelled_owned())),
+            pending,
         };
         if !streamed {
             body.set_due(Some(body.bound(now)));
         }
-        Ok(http::Request::from_parts(parts, body))
+        Ok((http::Request::from_parts(parts, body), charge))
     }
 }
 
@@ -253,6 +276,8 @@ pub(super) struct ConnectionIntake {
     held: AtomicUsize,
     /// Until its first request message is complete, the connection may be shed to admit another.
     probation: Mutex<Option<Probation>>,
+    /// Its never-started calls and its GOAWAY, as the memory budget sees them.
+    pub(crate) share: Arc<ConnectionShare>,
 }
 
 impl ConnectionIntake {
@@ -260,6 +285,7 @@ impl ConnectionIntake {
         ConnectionIntake {
             held: AtomicUsize::new(0),
             probation: Mutex::new(probation),
+            share: Arc::default(),
         }
     }
 
@@ -340,6 +366,7 @@ struct Holding {
     bytes: usize,
     /// Counted in the server-wide total too (prac.v1 calls).
     in_total: bool,
+    _memory: Option<Charge>,
 }
 
 impl Holding {
@@ -360,6 +387,10 @@ impl Holding {
             connection: connection.clone(),
             bytes,
             in_total,
+            _memory: intake
+                .budget
+                .as_ref()
+                .map(|b| b.charge(Item::Request, bytes as u64)),
         };
         if on_connection > intake.limits.bytes_per_connection {
             return Err(Status::resource_exhausted(format!(
@@ -423,6 +454,10 @@ pub(super) struct IntakeBody {
     /// Messages completed so far.
     messages: u64,
     failed: bool,
+    /// Until its first message is complete, the call may be reset to make room in the memory
+    /// budget: `reset` resolves then.
+    pending: Option<PendingCall>,
+    reset: Option<Pin<Box<tokio_util::sync::WaitForCancellationFutureOwned>>>,
 }
 
 impl IntakeBody {
@@ -447,6 +482,7 @@ impl IntakeBody {
     fn fail(&mut self, status: Status) -> Status {
         self.failed = true;
         self.holding = None;
+        self.started();
         self.inner = None;
         self.set_due(None);
         if self.streamed {
@@ -508,6 +544,7 @@ impl IntakeBody {
         // tonic decodes a complete message at once: what it held is given back.
         self.holding = None;
         self.messages += 1;
+        self.started();
         if self.streamed {
             self.set_due(None);
             self.connection.passed();
@@ -516,8 +553,15 @@ impl IntakeBody {
         // handler runs, so its bound stays until then.
     }
 
+    /// Past its first message (or its end): no longer a call that may be reset to make room.
+    fn started(&mut self) {
+        self.pending = None;
+        self.reset = None;
+    }
+
     fn end_of_stream(&mut self) {
         self.holding = None;
+        self.started();
         self.set_due(None);
         if self.messages > 0 {
             self.connection.passed();
@@ -563,6 +607,13 @@ impl HttpBody for IntakeBody {
                 return Poll::Ready(None);
             }
             Poll::Pending => {}
+        }
+        if let Some(reset) = this.reset.as_mut()
+            && reset.as_mut().poll(cx).is_ready()
+        {
+            return Poll::Ready(Some(Err(this
+                .fail(super::memory::call_reset_status())
+                .into())));
         }
         let Some(due) = this.due else {
             return Poll::Pending;

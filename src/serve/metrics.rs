@@ -17,6 +17,7 @@ use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
 use prometheus_client::registry::Registry;
 use tokio_util::sync::CancellationToken;
 
+use super::memory::{Item, Shed, Snapshot};
 use super::transport::{Admitted, ConnectionStats, Limits, accept_loop};
 use axum::extract::Request;
 use hyper::body::Incoming;
@@ -43,6 +44,13 @@ pub(super) struct Metrics {
     /// counting a step allocates nothing after.
     replanned_by_handler: OnceLock<Counter>,
     replanned_by_batch_worker: OnceLock<Counter>,
+    memory_limit: Gauge,
+    memory_reserved: Gauge,
+    memory_budget: Gauge,
+    memory_high_water: Gauge,
+    memory_charged: Family<Labels, Gauge>,
+    memory_resident: Gauge,
+    memory_shed: Family<Labels, Counter>,
 }
 
 /// What a served step's answer says, as the metrics count it.
@@ -86,6 +94,13 @@ impl Default for Metrics {
             replanned: Family::default(),
             replanned_by_handler: OnceLock::new(),
             replanned_by_batch_worker: OnceLock::new(),
+            memory_limit: Gauge::default(),
+            memory_reserved: Gauge::default(),
+            memory_budget: Gauge::default(),
+            memory_high_water: Gauge::default(),
+            memory_charged: Family::default(),
+            memory_resident: Gauge::default(),
+            memory_shed: Family::default(),
         };
         let mut m = m;
         let r = &mut m.registry;
@@ -158,6 +173,41 @@ impl Default for Metrics {
             "Bundle reloads (SIGHUP), by result",
             m.reloads.clone(),
         );
+        r.register(
+            "memory_limit_bytes",
+            "Memory the server may use in all: --max-memory, else the cgroup's limit, else the machine's",
+            m.memory_limit.clone(),
+        );
+        r.register(
+            "memory_reserved_bytes",
+            "Of the limit, set aside for the runtime and the loaded bundles",
+            m.memory_reserved.clone(),
+        );
+        r.register(
+            "memory_budget_bytes",
+            "The clients' memory budget: the limit less the reserve and a tenth as slack",
+            m.memory_budget.clone(),
+        );
+        r.register(
+            "memory_high_water_bytes",
+            "Past this much charged, never-started calls and idle watchers are shed to make room",
+            m.memory_high_water.clone(),
+        );
+        r.register(
+            "memory_charged_bytes",
+            "Charged against the clients' memory budget now, by item",
+            m.memory_charged.clone(),
+        );
+        r.register(
+            "memory_resident_bytes",
+            "The server's resident memory (VmRSS) at the scrape",
+            m.memory_resident.clone(),
+        );
+        r.register(
+            "memory_shed",
+            "What the server did to stay within its memory budget, by action",
+            m.memory_shed.clone(),
+        );
         m
     }
 }
@@ -224,6 +274,30 @@ impl Metrics {
         self.reloads
             .get_or_create(&vec![("result", result.to_string())])
             .inc();
+    }
+
+    /// The memory budget's numbers, as read now.
+    pub(super) fn memory(&self, snapshot: &Snapshot) {
+        let gauge = |g: &Gauge, v: u64| g.set(i64::try_from(v).unwrap_or(i64::MAX));
+        gauge(&self.memory_limit, snapshot.total);
+        gauge(&self.memory_reserved, snapshot.reserved);
+        gauge(&self.memory_budget, snapshot.budget);
+        gauge(&self.memory_high_water, snapshot.high_water);
+        for item in Item::ALL {
+            let labels = vec![("item", item.name().to_string())];
+            gauge(
+                &self.memory_charged.get_or_create(&labels),
+                snapshot.used[item as usize],
+            );
+        }
+        for shed in Shed::ALL {
+            let labels = vec![("action", shed.name().to_string())];
+            let counter = self.memory_shed.get_or_create(&labels);
+            counter.inc_by(snapshot.shed[shed as usize].saturating_sub(counter.get()));
+        }
+        if let Some(resident) = super::memory::limit::resident_bytes() {
+            gauge(&self.memory_resident, resident);
+        }
     }
 
     /// The OpenMetrics text of every metric, with the open-session gauge read now.

@@ -110,6 +110,8 @@ async fn reload_on_hangup(
     dir: std::path::PathBuf,
     health: Health,
     hangup: Option<tokio::signal::unix::Signal>,
+    max_sessions: usize,
+    threads: usize,
 ) {
     let Some(mut hangup) = hangup else {
         return;
@@ -174,6 +176,11 @@ async fn reload_on_hangup(
             unchanged = report.unchanged.len(),
             "reloaded bundles"
         );
+        if let Err(e) = fit_memory(&state, &registry, max_sessions, threads) {
+            tracing::error!(error = %format!("{e:#}"), "reload refused: the new bundles do not fit the memory budget; serving as before");
+            state.metrics.reload(false);
+            continue;
+        }
         state.metrics.reload(report.errors.is_empty());
         let serving = !registry.is_empty();
         state
@@ -358,7 +365,7 @@ pub(crate) async fn serve(
     reporter
         .set_service_status(LIVENESS_SERVICE, ServingStatus::Serving)
         .await;
-    let state = server_state(config, bound.auth, cancel.clone());
+    let state = server_state(config, bound.auth, cancel.clone())?;
     let health = Health {
         reporter,
         metrics: state.metrics.clone(),
@@ -401,6 +408,7 @@ pub(crate) async fn serve(
     let connection_stats = Arc::new(transport::ConnectionStats::default());
     tokio::spawn(memory::give_back_after_bursts(
         connection_stats.clone(),
+        state.budget.clone(),
         cancel.clone(),
     ));
     let server = transport::serve_grpc(
@@ -419,10 +427,12 @@ pub(crate) async fn serve(
             max_connections: bound.limits.max_connections.min(PROBE_CONNECTIONS),
             ..bound.limits
         };
+        // Outside the memory budget: probes are few, and must be answered however short it is.
         let intake = Arc::new(intake::Intake::new(
             config.requests,
             None,
             state.metrics.clone(),
+            None,
         ));
         tokio::spawn(transport::serve_grpc(
             listener,
@@ -436,7 +446,11 @@ pub(crate) async fn serve(
     }
     if let Some(listener) = bound.metrics {
         let (sessions, metrics) = (state.sessions.clone(), state.metrics.clone());
-        let scrape: metrics::Scrape = Arc::new(move || metrics.encode(sessions.len()));
+        let budget = state.budget.clone();
+        let scrape: metrics::Scrape = Arc::new(move || {
+            metrics.memory(&budget.snapshot());
+            metrics.encode(sessions.len())
+        });
         tokio::spawn(metrics::serve(
             listener,
             scrape,
@@ -474,6 +488,8 @@ pub(crate) async fn serve(
         config.bundles.clone(),
         health.clone(),
         hangup,
+        config.max_sessions,
+        replanning_threads(config),
     ));
     #[cfg(not(unix))]
     let reloader = tokio::spawn(async {});
@@ -507,16 +523,25 @@ fn server_state(
     config: &ServeConfig,
     auth: Option<auth::Tokens>,
     cancel: CancellationToken,
-) -> Arc<ServerState> {
+) -> anyhow::Result<Arc<ServerState>> {
     let auth = auth.map(Arc::new);
     let metrics = Arc::new(metrics::Metrics::default());
     metrics.set_max_sessions(config.max_sessions);
-    Arc::new(ServerState {
+    let limit = memory::limit::resolve(config.max_memory)?;
+    tracing::info!(
+        max_memory = %memory::show_size(limit.bytes),
+        from = %limit.source,
+        "memory budget"
+    );
+    let budget = memory::MemoryBudget::new(limit);
+    Ok(Arc::new(ServerState {
         intake: Arc::new(intake::Intake::new(
             config.requests,
             auth.clone(),
             metrics.clone(),
+            Some(budget.clone()),
         )),
+        budget,
         registry: RwLock::new(None),
         sessions: {
             let metrics = metrics.clone();
@@ -533,7 +558,35 @@ fn server_state(
         batcher: config.batch.map(batch::Batcher::start),
         auth,
         metrics,
-    })
+    }))
+}
+
+/// Threads that keep a workspace per bundle: the runtime's and the batch workers.
+fn replanning_threads(config: &ServeConfig) -> usize {
+    let runtime = std::thread::available_parallelism().map_or(1, |n| n.get());
+    runtime + config.batch.map_or(0, |b| b.workers)
+}
+
+/// Checks that `registry` fits the memory budget with `max_sessions` sessions, and sets aside
+/// what it needs; else the error says which numbers do not fit.
+fn fit_memory(
+    state: &ServerState,
+    registry: &Registry,
+    max_sessions: usize,
+    threads: usize,
+) -> anyhow::Result<()> {
+    let needed = state.budget.check_fit(
+        registry.iter().map(|(name, p)| (name.as_str(), p.as_ref())),
+        max_sessions,
+        threads,
+    )?;
+    state.budget.reserve_for_bundles(needed);
+    tracing::info!(
+        bundles = %memory::show_size(needed),
+        clients = %memory::show_size(state.budget.budget()),
+        "memory set aside for the bundles; the rest is the clients' budget"
+    );
+    Ok(())
 }
 
 /// Puts the first load of the bundle directory in service: SERVING when it holds a policy.
@@ -572,6 +625,12 @@ async fn install_bundles(
         );
     }
     let count = loaded.registry.len();
+    fit_memory(
+        state,
+        &loaded.registry,
+        config.max_sessions,
+        replanning_threads(config),
+    )?;
     state
         .intake
         .bundles_need(loaded.registry.largest_requests(config.max_horizon_limit));

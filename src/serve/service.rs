@@ -7,6 +7,7 @@ use std::time::Instant;
 
 use futures::Stream;
 use tokio::sync::mpsc;
+use tokio_stream::StreamExt as _;
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status, Streaming};
@@ -16,6 +17,7 @@ use super::auth::Caller;
 use super::batch::{Answer, Batcher};
 use super::deadline;
 use super::intake::{MessageDue, message_overdue, message_overdue_status};
+use super::memory::{Item, Shed, WatcherTicket, costs as memory_costs};
 use super::metrics::{ReplannedBy, StepAnswer};
 use super::registry::Registry;
 use super::session::{
@@ -43,6 +45,8 @@ pub(super) struct ServerState {
     pub(crate) auth: Option<Arc<super::auth::Tokens>>,
     /// Requests in transit: their sizes, buffered bytes and timeouts.
     pub(crate) intake: Arc<super::intake::Intake>,
+    /// What clients may make the server hold; the intake charges calls and request bytes to it.
+    pub(crate) budget: Arc<super::memory::MemoryBudget>,
     pub(crate) metrics: Arc<super::metrics::Metrics>,
 }
 
@@ -67,16 +71,23 @@ impl From<StepError> for Status {
     }
 }
 
+/// A response stream's channel. Answers travel boxed: tokio's channel reserves its slots in
+/// blocks of 32 when it is made, and a slot of a pointer keeps that block at 512 bytes for each
+/// stream, opened or not, where a slot of the answer itself took some 3 KB.
+type Answers<T> = mpsc::Sender<Result<Box<T>, Status>>;
+
+fn answers<T: Send + 'static>(buffer: usize) -> (Answers<T>, ResponseStream<T>) {
+    let (tx, rx) = mpsc::channel::<Result<Box<T>, Status>>(buffer);
+    let stream = ReceiverStream::new(rx).map(|answer| answer.map(|boxed| *boxed));
+    (tx, Box::pin(stream))
+}
+
 /// Sends on a response stream unless shutdown comes first (a client that stops reading must not
 /// hold the drain). False when the stream is over.
-async fn send<T>(
-    tx: &mpsc::Sender<Result<T, Status>>,
-    item: Result<T, Status>,
-    shutdown: &CancellationToken,
-) -> bool {
+async fn send<T>(tx: &Answers<T>, item: Result<T, Status>, shutdown: &CancellationToken) -> bool {
     tokio::select! {
         biased;
-        sent = tx.send(item) => sent.is_ok(),
+        sent = tx.send(item.map(Box::new)) => sent.is_ok(),
         _ = shutdown.cancelled() => false,
     }
 }
@@ -167,6 +178,13 @@ impl ServerState {
                 settings.replan.max_horizon, self.max_message_bytes
             )));
         }
+        // Charged at its largest plan; sessions are never shed, so one that does not fit is
+        // refused now.
+        let memory = self.budget.try_charge(
+            Item::Session,
+            memory_costs::session(policy, settings.replan.max_horizon),
+            Shed::SessionRefused,
+        )?;
         let id = new_session_id();
         let mut session = Session::new(id.clone(), policy.clone(), settings);
         session.owner = owner;
@@ -181,7 +199,7 @@ impl ServerState {
         };
         let steps_served = self.metrics.policy_steps(&policy.manifest.name);
         self.sessions
-            .insert(session, steps_served)
+            .insert(session, steps_served, Some(memory))
             .map_err(Status::from)?;
         self.metrics.session_opened();
         tracing::debug!(session = %id, policy = %request.policy, "session opened");
@@ -376,7 +394,7 @@ impl Prac for PracService {
         let caller = self.state.caller(&request)?;
         let message_due = request.extensions().get::<MessageDue>().cloned();
         let mut inbound = request.into_inner();
-        let (tx, rx) = mpsc::channel(STREAM_BUFFER);
+        let (tx, stream) = answers(STREAM_BUFFER);
         let state = self.state.clone();
         tokio::spawn(async move {
             loop {
@@ -430,7 +448,7 @@ impl Prac for PracService {
                 }
             }
         });
-        Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
+        Ok(Response::new(stream))
     }
 
     async fn get_plan(
@@ -462,13 +480,15 @@ impl Prac for PracService {
                 .get(&id, caller.as_deref())
                 .map_err(Status::from),
         )?;
+        let ticket = self.state.counted(self.state.budget.admit_watcher())?;
+        let shed = ticket.reset();
         let (current, mut updates) = {
             let session = slot.lock();
             (session.plan_proto(), session.watch())
         };
         drop(slot);
         // One slot: while a watcher is slow, the watch channel keeps only the newest plan.
-        let (tx, rx) = mpsc::channel(1);
+        let (tx, stream) = answers(1);
         let state = self.state.clone();
         tokio::spawn(async move {
             let shutdown = &state.shutdown;
@@ -483,6 +503,13 @@ impl Prac for PracService {
                         let _ = tx.try_send(Err(shutting_down()));
                         break;
                     }
+                    // Its session idle while memory is short: ended to make room.
+                    _ = shed.cancelled() => {
+                        let status = WatcherTicket::shed_status();
+                        state.metrics.error(&status);
+                        let _ = tx.try_send(Err(status));
+                        break;
+                    }
                     changed = updates.changed() => {
                         if changed.is_err() {
                             // The session ended: say how (closed, expired).
@@ -493,6 +520,7 @@ impl Prac for PracService {
                             }
                             break;
                         }
+                        ticket.active();
                         let plan = updates.borrow_and_update().as_ref().clone();
                         if !send(&tx, Ok(plan), shutdown).await {
                             let _ = tx.try_send(Err(shutting_down()));
@@ -502,6 +530,6 @@ impl Prac for PracService {
                 }
             }
         });
-        Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
+        Ok(Response::new(stream))
     }
 }

@@ -39,6 +39,7 @@ use tonic::codegen::Service;
 use tonic::service::Routes;
 
 use super::intake::{ConnectionIntake, Intake};
+use super::memory::{Charge, costs as memory_costs};
 
 /// Limits on the connections of one listener.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -311,6 +312,22 @@ pub(super) async fn serve_grpc(
         shutdown,
         |tcp, _peer, admitted| {
             let Admitted { permit, probation } = admitted;
+            // Charged against the memory budget from accept to close; none left, closed now.
+            let memory = match intake.budget() {
+                Some(budget) => {
+                    let bytes = memory_costs::CONNECTION
+                        + if tls.is_some() {
+                            memory_costs::TLS_EXTRA
+                        } else {
+                            0
+                        };
+                    match budget.admit_connection(bytes) {
+                        Some(charge) => Some(charge),
+                        None => return drop(tcp),
+                    }
+                }
+                None => None,
+            };
             let connection = Connection {
                 routes: routes.clone(),
                 limits,
@@ -323,6 +340,7 @@ pub(super) async fn serve_grpc(
             let tls = tls.clone();
             tokio::spawn(async move {
                 let _permit = permit;
+                let _memory = memory;
                 let stats = connection.stats.clone();
                 stats.open.fetch_add(1, Ordering::Relaxed);
                 connection.run(tcp, tls).await;
@@ -396,6 +414,7 @@ impl Connection {
         let connection = builder.serve_connection(TokioIo::new(io), service);
         tokio::pin!(connection);
         let mut closing = false;
+        let goaway = self.connection_intake.share.goaway();
         loop {
             let wake = activity.wake_at(&self.limits);
             tokio::select! {
@@ -408,6 +427,12 @@ impl Connection {
                 _ = activity.changed.notified() => continue,
                 // Shed at the cap before its first complete request: closed at once.
                 _ = self.shed.cancelled() => return,
+                // Holding many never-started calls while memory is short: GOAWAY, and the
+                // calls it has started go on.
+                _ = goaway.cancelled(), if !closing => {
+                    connection.as_mut().graceful_shutdown();
+                    closing = true;
+                }
                 changed = self.draining.changed(), if !closing => {
                     // Shutdown (or the server gone): GOAWAY, calls in flight finish.
                     let _ = changed;
@@ -539,8 +564,8 @@ impl hyper::service::Service<http::Request<Incoming>> for Tracked {
 
     fn call(&self, request: http::Request<Incoming>) -> Self::Future {
         // Called in the connection's order of streams, before any handler runs.
-        let mut request = match self.intake.admit(&self.connection_intake, request) {
-            Ok(request) => request,
+        let (mut request, memory) = match self.intake.admit(&self.connection_intake, request) {
+            Ok(admitted) => admitted,
             // Refused from its headers: answered now, its body never read.
             Err(status) => return Box::pin(std::future::ready(Ok(status.into_http()))),
         };
@@ -555,6 +580,7 @@ impl hyper::service::Service<http::Request<Incoming>> for Tracked {
                 Body::new(TrackedBody {
                     inner: body,
                     _in_flight: in_flight,
+                    _memory: memory,
                 })
             }))
         })
@@ -565,6 +591,8 @@ impl hyper::service::Service<http::Request<Incoming>> for Tracked {
 struct TrackedBody {
     inner: Body,
     _in_flight: InFlight,
+    /// The call's charge against the memory budget.
+    _memory: Option<Charge>,
 }
 
 impl HttpBody for TrackedBody {

@@ -9,6 +9,7 @@ mod bundles;
 mod cli;
 mod connections;
 mod deadlines;
+mod memory;
 mod metrics;
 mod reload;
 mod render;

@@ -44,6 +44,8 @@ pub(crate) struct SessionSlot {
     last_used_ms: AtomicU64,
     /// Requests using the session now: a session with one in flight never expires.
     in_use: AtomicU64,
+    /// Its charge against the server's memory budget, given back when the last user lets go.
+    _memory: Option<crate::serve::memory::Charge>,
 }
 
 /// Marks a session in use from [`Sessions::get`] until dropped; then its idle time starts.
@@ -176,6 +178,7 @@ impl Sessions {
         &self,
         session: Session,
         steps_served: prometheus_client::metrics::counter::Counter,
+        memory: Option<crate::serve::memory::Charge>,
     ) -> Result<(), SessionError> {
         let mut slots = self.slots();
         if slots.len() >= self.max_sessions {
@@ -191,6 +194,7 @@ impl Sessions {
                 session: Mutex::new(session),
                 last_used_ms: AtomicU64::new(self.now_ms()),
                 in_use: AtomicU64::new(0),
+                _memory: memory,
             }),
         );
         Ok(())

@@ -96,7 +96,7 @@ async fn a_session_in_use_never_expires_and_idles_from_its_last_use() {
     let sessions = Sessions::new(8, Duration::from_millis(30));
     let policy = policy();
     let s = session(&policy, Default::default());
-    sessions.insert(s, Default::default()).unwrap();
+    sessions.insert(s, Default::default(), None).unwrap();
     let in_use = sessions.get("s", None).unwrap();
     tokio::time::advance(Duration::from_millis(80)).await;
     assert_eq!(sessions.evict_idle(), 0, "evicted while a request used it");

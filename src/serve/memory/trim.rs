@@ -11,7 +11,8 @@ use std::time::Duration;
 
 use tokio_util::sync::CancellationToken;
 
-use super::transport::ConnectionStats;
+use super::super::transport::ConnectionStats;
+use super::{BurstLog, MemoryBudget};
 
 /// How often the counts are looked at.
 const PERIOD: Duration = Duration::from_millis(250);
@@ -24,11 +25,14 @@ const CONNECTIONS_BURST: u64 = 64;
 /// next moments, after the counts have fallen.
 const TRIMS_PER_BURST: u32 = 8;
 
-/// Trims the heap after each burst until `shutdown`.
-pub(super) async fn give_back_after_bursts(
+/// Trims the heap after each burst until `shutdown`, and logs the memory budget's bursts of
+/// shedding.
+pub(in crate::serve) async fn give_back_after_bursts(
     stats: Arc<ConnectionStats>,
+    budget: Arc<MemoryBudget>,
     shutdown: CancellationToken,
 ) {
+    let mut bursts = BurstLog::default();
     let mut tick = tokio::time::interval(PERIOD);
     let (mut calls_high, mut connections_high) = (0, 0);
     let mut trims_left = 0;
@@ -37,6 +41,7 @@ pub(super) async fn give_back_after_bursts(
             _ = shutdown.cancelled() => return,
             _ = tick.tick() => {}
         }
+        bursts.look(&budget);
         let calls = stats.calls_in_flight.load(Ordering::Relaxed);
         // The peak since the last look, however brief (the count now starts the next one's).
         calls_high = calls_high.max(stats.calls_in_flight_peak.swap(calls, Ordering::Relaxed));
