@@ -503,6 +503,9 @@ impl Prac for PracService {
                         let _ = tx.try_send(Err(shutting_down()));
                         break;
                     }
+                    // The client is gone (its call cancelled or its connection closed): a watcher
+                    // of a session that never steps would otherwise wait for it to end.
+                    _ = tx.closed() => break,
                     // Its session idle while memory is short: ended to make room.
                     _ = shed.cancelled() => {
                         let status = WatcherTicket::shed_status();

@@ -561,4 +561,16 @@ async fn idle_watchers_are_shed_before_stepping_sessions() {
         }
     }
     assert!(resource_exhausted > 0);
+    // The watchers whose clients went away end with them, though their session never steps:
+    // only the stepping session's watcher is still charged.
+    let watcher = "prac_memory_charged_bytes{item=\"watcher\"}";
+    let deadline = Instant::now() + Duration::from_secs(5);
+    while sample(&scrape(&metrics), watcher) > 1024.0 {
+        assert!(
+            Instant::now() < deadline,
+            "watchers of gone clients still held: {}",
+            scrape(&metrics)
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
 }

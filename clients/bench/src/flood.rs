@@ -178,11 +178,16 @@ async fn flood_connection(addr: String, calls: usize, shared: Arc<Shared>) {
                 let mut client = PracClient::new(channel);
                 while !shared.stop.load(Ordering::Relaxed) && !dead.load(Ordering::Relaxed) {
                     shared.calls_opened.fetch_add(1, Ordering::Relaxed);
-                    // HEADERS, then nothing: the request stream never yields.
-                    let ended = match client
-                        .step_stream(tokio_stream::pending::<proto::StepRequest>())
-                        .await
-                    {
+                    // HEADERS, then nothing: the request stream yields nothing until this task
+                    // ends and drops `_open`, which ends it.
+                    let (_open, requests) = tokio::sync::mpsc::channel::<proto::StepRequest>(1);
+                    let requests = tokio_stream::wrappers::ReceiverStream::new(requests);
+                    let call = client.step_stream(requests);
+                    let answered = tokio::select! {
+                        answered = call => answered,
+                        _ = wait_stop(&shared) => return,
+                    };
+                    let ended = match answered {
                         Ok(response) => {
                             let mut inbound = response.into_inner();
                             loop {
@@ -262,7 +267,11 @@ async fn flood_watchers(
                 let request = proto::WatchPlanRequest {
                     session_id: id.clone(),
                 };
-                let ended = match client.watch_plan(request).await {
+                let answered = tokio::select! {
+                    answered = client.watch_plan(request) => answered,
+                    _ = wait_stop(&shared) => return,
+                };
+                let ended = match answered {
                     Ok(response) => {
                         let mut plans = response.into_inner();
                         loop {
@@ -444,20 +453,47 @@ async fn main() -> anyhow::Result<()> {
         }));
     }
 
+    // The probe runs on a thread and runtime of its own, so that the flood's thousands of tasks
+    // in this process do not queue ahead of it: its times are the server's.
     let end = Instant::now() + args.duration;
-    let (mut probes, mut failures, mut firsts) = (0, Vec::new(), Vec::new());
-    let mut tick = tokio::time::interval(args.probe_every);
-    while Instant::now() < end {
-        tick.tick().await;
-        probes += 1;
-        match probe(&mut probe_client, &args.policy, obs_dim, args.probe_steps).await {
-            Ok(first) => firsts.push(first),
-            Err(e) => failures.push(format!("{e:#}")),
-        }
-    }
+    let probing = {
+        let (server, policy) = (server.clone(), args.policy.clone());
+        let (every, steps) = (args.probe_every, args.probe_steps);
+        std::thread::spawn(
+            move || -> anyhow::Result<(u64, Vec<String>, Vec<Duration>)> {
+                let runtime = tokio::runtime::Builder::new_current_thread()
+                    .enable_all()
+                    .build()?;
+                runtime.block_on(async move {
+                    let mut client = PracClient::new(channel(&server).await?);
+                    let (mut probes, mut failures, mut firsts) = (0, Vec::new(), Vec::new());
+                    let mut tick = tokio::time::interval(every);
+                    while Instant::now() < end {
+                        tick.tick().await;
+                        probes += 1;
+                        match probe(&mut client, &policy, obs_dim, steps).await {
+                            Ok(first) => firsts.push(first),
+                            Err(e) => failures.push(format!("{e:#}")),
+                        }
+                    }
+                    Ok((probes, failures, firsts))
+                })
+            },
+        )
+    };
+    let (probes, failures, mut firsts) = tokio::task::spawn_blocking(move || probing.join())
+        .await?
+        .map_err(|_| anyhow::anyhow!("the probe thread panicked"))??;
     shared.stop.store(true, Ordering::Relaxed);
-    for task in flood {
-        let _ = tokio::time::timeout(Duration::from_secs(10), task).await;
+    // Every flood call and connection ends here, so that the memory measured after is the
+    // server's own.
+    for mut task in flood {
+        if tokio::time::timeout(Duration::from_secs(10), &mut task)
+            .await
+            .is_err()
+        {
+            task.abort();
+        }
     }
     let _ = sampler.await;
     tokio::time::sleep(args.settle).await;

@@ -10,10 +10,11 @@
 //! Past the high-water mark (80 % of the budget) room is made in a fixed order before anything
 //! new is admitted: the oldest calls that never sent a first message are reset
 //! (RESOURCE_EXHAUSTED), then the watchers of sessions that are not stepping; sessions are never
-//! shed. A connection that holds many never-started calls is sent GOAWAY and its never-started
-//! calls are reset, and a new call from such a connection is refused. Whatever cannot be made room
-//! for under the budget is refused: a call with RESOURCE_EXHAUSTED from its headers, a connection
-//! closed when accepted. Each action is counted in the metrics and logged once per burst.
+//! shed. Meanwhile a connection may hold only a few never-started calls: past that its new calls
+//! are refused, and one found holding many is sent GOAWAY and its never-started calls reset.
+//! Whatever cannot be made room for under the budget is refused: a call with RESOURCE_EXHAUSTED
+//! from its headers, a connection closed when accepted. Each action is counted in the metrics
+//! and logged once per burst.
 
 pub(crate) mod costs;
 pub(super) mod limit;
@@ -44,6 +45,11 @@ const LOW_WATER_PERCENT: u64 = 70;
 
 /// A connection holding this many never-started calls is sent GOAWAY when the server sheds.
 pub(super) const HOARDING_CALLS: usize = 32;
+
+/// Past the high-water mark, a connection may hold at most this many never-started calls: a
+/// client sends its first message at once, so its new calls still get in while a flood's
+/// connections, each holding many, are refused.
+const NEVER_STARTED_PAST_HIGH_WATER: usize = 4;
 
 /// The least the clients' budget may be: a few connections, calls and sessions.
 const MIN_CLIENT_BYTES: u64 = 4 << 20;
@@ -283,10 +289,16 @@ impl MemoryBudget {
         self.budget() / 100 * LOW_WATER_PERCENT
     }
 
-    /// Charged now, less what is being shed.
+    /// Charged now: what is held, including what is being shed but has not yet let go.
+    fn charged(&self) -> u64 {
+        self.used.iter().map(|u| u.load(Ordering::Relaxed)).sum()
+    }
+
+    /// Charged now, less what is being shed: what shedding goes by, so that one burst is shed
+    /// once, while admission goes by [`Self::charged`] until the shed calls have let go.
     fn used(&self) -> u64 {
-        let charged: u64 = self.used.iter().map(|u| u.load(Ordering::Relaxed)).sum();
-        charged.saturating_sub(self.shedding.load(Ordering::Relaxed))
+        self.charged()
+            .saturating_sub(self.shedding.load(Ordering::Relaxed))
     }
 
     fn count(&self, shed: Shed, by: u64) {
@@ -315,10 +327,11 @@ impl MemoryBudget {
         }
     }
 
-    /// Whether `bytes` more fit: under the high-water mark at once; past it, after shedding
-    /// never-started calls and then idle watchers down to the low-water mark, under the budget.
+    /// Whether `bytes` more fit: under the high-water mark at once; past it, once shedding
+    /// never-started calls and then idle watchers down to the low-water mark has begun, if what
+    /// is still held leaves room under the budget.
     fn make_room(&self, bytes: u64) -> bool {
-        if self.used() + bytes <= self.high_water() {
+        if self.charged() + bytes <= self.high_water() {
             return true;
         }
         let target = self.low_water().saturating_sub(bytes);
@@ -326,7 +339,7 @@ impl MemoryBudget {
         if self.used() > target {
             self.shed_idle_watchers(target);
         }
-        self.used() + bytes <= self.budget()
+        self.charged() + bytes <= self.budget()
     }
 
     /// Charges `bytes` for `item` if room can be made, else counts `refused` and says why.
@@ -361,18 +374,22 @@ impl MemoryBudget {
             .ok()
     }
 
-    /// A new call on `connection`: charged and registered as never-started until
-    /// [`Admission::started`]. Past the high-water mark a connection that already holds
-    /// [`HOARDING_CALLS`] never-started calls is sent GOAWAY and the call refused.
+    /// A new call on `connection`: charged and registered as never-started until its first
+    /// message. Past the high-water mark a connection that already holds
+    /// [`NEVER_STARTED_PAST_HIGH_WATER`] never-started calls has the call refused, and one that
+    /// holds [`HOARDING_CALLS`] is sent GOAWAY too.
     pub(super) fn admit_call(
         self: &Arc<Self>,
         connection: &Arc<ConnectionShare>,
     ) -> Result<Admission, Status> {
         let bytes = costs::CALL;
-        if self.used() + bytes > self.high_water()
-            && connection.never_started.load(Ordering::Relaxed) >= HOARDING_CALLS
+        let never_started = connection.never_started.load(Ordering::Relaxed);
+        if self.charged() + bytes > self.high_water()
+            && never_started >= NEVER_STARTED_PAST_HIGH_WATER
         {
-            self.goaway(connection);
+            if never_started >= HOARDING_CALLS {
+                self.goaway(connection);
+            }
             self.count(Shed::CallRefused, 1);
             return Err(Status::resource_exhausted(
                 "this connection holds many calls that never sent a message while the server's \
