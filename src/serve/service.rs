@@ -6,7 +6,7 @@ use std::sync::{Arc, RwLock};
 use std::time::Instant;
 
 use futures::Stream;
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, oneshot};
 use tokio_stream::StreamExt as _;
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_util::sync::CancellationToken;
@@ -71,15 +71,38 @@ impl From<StepError> for Status {
     }
 }
 
-/// A response stream's channel. Answers travel boxed: tokio's channel reserves its slots in
+/// A response stream's sending end. Answers travel boxed: tokio's channel reserves its slots in
 /// blocks of 32 when it is made, and a slot of a pointer keeps that block at 512 bytes for each
-/// stream, opened or not, where a slot of the answer itself took some 3 KB.
-type Answers<T> = mpsc::Sender<Result<Box<T>, Status>>;
+/// stream, opened or not, where a slot of the answer itself took some 3 KB. The status a stream
+/// ends with goes apart, so it reaches the client after the answers buffered before it even when
+/// the buffer is full (a client that does not read still learns why its stream ended).
+struct Answers<T> {
+    tx: mpsc::Sender<Result<Box<T>, Status>>,
+    ending: Option<oneshot::Sender<Status>>,
+}
+
+impl<T> Answers<T> {
+    /// Ends the stream with `status` once the answers buffered before it are read.
+    fn end_with(&mut self, status: Status) {
+        if let Some(ending) = self.ending.take() {
+            let _ = ending.send(status);
+        }
+    }
+
+    /// Resolves when the client is gone.
+    async fn closed(&self) {
+        self.tx.closed().await
+    }
+}
 
 fn answers<T: Send + 'static>(buffer: usize) -> (Answers<T>, ResponseStream<T>) {
     let (tx, rx) = mpsc::channel::<Result<Box<T>, Status>>(buffer);
-    let stream = ReceiverStream::new(rx).map(|answer| answer.map(|boxed| *boxed));
-    (tx, Box::pin(stream))
+    let (ending, ended) = oneshot::channel::<Status>();
+    let stream = ReceiverStream::new(rx)
+        .map(|answer| answer.map(|boxed| *boxed))
+        .chain(futures::stream::once(ended).filter_map(|status| status.ok().map(Err)));
+    let ending = Some(ending);
+    (Answers { tx, ending }, Box::pin(stream))
 }
 
 /// Sends on a response stream unless shutdown comes first (a client that stops reading must not
@@ -87,7 +110,7 @@ fn answers<T: Send + 'static>(buffer: usize) -> (Answers<T>, ResponseStream<T>) 
 async fn send<T>(tx: &Answers<T>, item: Result<T, Status>, shutdown: &CancellationToken) -> bool {
     tokio::select! {
         biased;
-        sent = tx.send(item.map(Box::new)) => sent.is_ok(),
+        sent = tx.tx.send(item.map(Box::new)) => sent.is_ok(),
         _ = shutdown.cancelled() => false,
     }
 }
@@ -394,14 +417,14 @@ impl Prac for PracService {
         let caller = self.state.caller(&request)?;
         let message_due = request.extensions().get::<MessageDue>().cloned();
         let mut inbound = request.into_inner();
-        let (tx, stream) = answers(STREAM_BUFFER);
+        let (mut tx, stream) = answers(STREAM_BUFFER);
         let state = self.state.clone();
         tokio::spawn(async move {
             loop {
                 tokio::select! {
                     biased;
                     _ = state.shutdown.cancelled() => {
-                        let _ = tx.try_send(Err(shutting_down()));
+                        tx.end_with(shutting_down());
                         break;
                     }
                     message = inbound.message() => {
@@ -437,7 +460,7 @@ impl Prac for PracService {
                                 applied.take_back();
                             }
                             state.metrics.error(&status);
-                            let _ = tx.try_send(Err(status));
+                            tx.end_with(status);
                             break;
                         }
                         // The first error ends the stream (gRPC carries a status only at the end).
@@ -488,19 +511,19 @@ impl Prac for PracService {
         };
         drop(slot);
         // One slot: while a watcher is slow, the watch channel keeps only the newest plan.
-        let (tx, stream) = answers(1);
+        let (mut tx, stream) = answers(1);
         let state = self.state.clone();
         tokio::spawn(async move {
             let shutdown = &state.shutdown;
             if !send(&tx, Ok(current), shutdown).await {
-                let _ = tx.try_send(Err(shutting_down()));
+                tx.end_with(shutting_down());
                 return;
             }
             loop {
                 tokio::select! {
                     biased;
                     _ = shutdown.cancelled() => {
-                        let _ = tx.try_send(Err(shutting_down()));
+                        tx.end_with(shutting_down());
                         break;
                     }
                     // The client is gone (its call cancelled or its connection closed): a watcher
@@ -510,7 +533,7 @@ impl Prac for PracService {
                     _ = shed.cancelled() => {
                         let status = WatcherTicket::shed_status();
                         state.metrics.error(&status);
-                        let _ = tx.try_send(Err(status));
+                        tx.end_with(status);
                         break;
                     }
                     changed = updates.changed() => {
@@ -526,7 +549,7 @@ impl Prac for PracService {
                         ticket.active();
                         let plan = updates.borrow_and_update().as_ref().clone();
                         if !send(&tx, Ok(plan), shutdown).await {
-                            let _ = tx.try_send(Err(shutting_down()));
+                            tx.end_with(shutting_down());
                             break;
                         }
                     }

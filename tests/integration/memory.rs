@@ -70,6 +70,15 @@ async fn settle() {
 async fn measure_item_costs() {
     let big = ["--max-memory", "16Gi", "--max-connections", "4000"];
     let mut report = serde_json::Map::new();
+    let cpu = std::fs::read_to_string("/proc/cpuinfo")
+        .unwrap_or_default()
+        .lines()
+        .find_map(|l| {
+            l.strip_prefix("model name")
+                .map(|v| v.trim_start_matches([' ', '\t', ':']).to_string())
+        })
+        .unwrap_or_default();
+    report.insert("cpu".into(), cpu.into());
     let mut put = |key: &str, value: serde_json::Value| {
         println!("{key}: {value}");
         report.insert(key.to_string(), value);

@@ -69,8 +69,8 @@ struct Args {
 
 /// How the flood's calls ended: by the gRPC status the server sent ("Ok" for a clean end of
 /// stream), or, for calls the server never processed, "refused by GOAWAY" (opened after the
-/// connection's GOAWAY: tonic reports these as INTERNAL) and "connection closed" (queued on a
-/// connection that closed first: CANCELLED).
+/// connection's GOAWAY: tonic reports these as INTERNAL) and "connection closed" (queued on, or
+/// still sending over, a connection that closed first: CANCELLED or UNKNOWN).
 #[derive(Default, Serialize)]
 struct Ended {
     by_code: BTreeMap<String, u64>,
@@ -86,7 +86,17 @@ fn transport_ending(status: &tonic::Status) -> Option<&'static str> {
         if shown.contains("GoAway") {
             return Some("refused by GOAWAY");
         }
-        if shown.contains("Canceled") || shown.contains("connection closed") {
+        if [
+            "Canceled",
+            "connection closed",
+            "BrokenPipe",
+            "broken pipe",
+            "ConnectionReset",
+            "connection reset",
+        ]
+        .iter()
+        .any(|closed| shown.contains(closed))
+        {
             return Some("connection closed");
         }
         source = error.source();

@@ -84,7 +84,13 @@ class Container:
     no capabilities, uid 65532, the three ports published on loopback."""
 
     def __init__(
-        self, image: str, *args: str, volumes: tuple[str, ...] = (), entrypoint: str | None = None, wait_listening: bool = True
+        self,
+        image: str,
+        *args: str,
+        volumes: tuple[str, ...] = (),
+        entrypoint: str | None = None,
+        wait_listening: bool = True,
+        options: tuple[str, ...] = (),
     ) -> None:
         self.podman = tool("podman")
         self.name = f"prac-test-{uuid.uuid4().hex[:10]}"
@@ -100,6 +106,7 @@ class Container:
             command += ["-v", volume]
         if entrypoint is not None:
             command += ["--entrypoint", entrypoint]
+        command += list(options)
         subprocess.run([*command, image, *args], check=True, capture_output=True, text=True)
         if wait_listening:
             deadline = time.monotonic() + 30

@@ -5,6 +5,7 @@ unless PRAC_REQUIRE_DEPLOY is set)."""
 from __future__ import annotations
 
 import json
+import os
 import pathlib
 import re
 import shutil
@@ -12,7 +13,7 @@ import subprocess
 import threading
 import time
 import urllib.request
-from typing import Iterator
+from typing import Any, Iterator
 
 import grpc
 import numpy as np
@@ -252,3 +253,89 @@ def test_a_container_killed_mid_episode_behind_the_affinity_proxy_loses_no_step(
     with grpc.insecure_channel(survivor.address) as channel:
         plan = pb_grpc.PracStub(channel).GetPlan(pb.GetPlanRequest(session_id=final_id), timeout=5)
     assert plan.start_step == len(results) - 1
+
+
+def container_cgroup(c: Container) -> pathlib.Path:
+    """The container's memory cgroup on the host (v1's memory controller, else v2)."""
+    pid = subprocess.run(
+        [tool("podman"), "inspect", "--format", "{{.State.Pid}}", c.name], check=True, capture_output=True, text=True
+    ).stdout.strip()
+    lines = pathlib.Path(f"/proc/{pid}/cgroup").read_text().splitlines()
+    for line in lines:
+        _, controllers, path = line.split(":", 2)
+        if "memory" in controllers.split(","):
+            return pathlib.Path("/sys/fs/cgroup/memory") / path.lstrip("/")
+    v2 = next(line.split(":", 2)[2] for line in lines if line.startswith("0::"))
+    return pathlib.Path("/sys/fs/cgroup") / v2.lstrip("/")
+
+
+def oom_kills(cgroup: pathlib.Path) -> int:
+    """The kernel's count of OOM kills in the cgroup: memory.events (v2) or memory.oom_control (v1),
+    not podman's OOMKilled flag, which podman 4 on cgroup v1 leaves false even for a killed container."""
+    for name in ("memory.events", "memory.oom_control"):
+        file = cgroup / name
+        if file.exists():
+            counts = dict(line.split() for line in file.read_text().splitlines())
+            return int(counts.get("oom_kill", "0"))
+    raise AssertionError(f"no memory.events or memory.oom_control in {cgroup}")
+
+
+def peak_bytes(cgroup: pathlib.Path) -> int:
+    for name in ("memory.peak", "memory.max_usage_in_bytes"):
+        if (cgroup / name).exists():
+            return int((cgroup / name).read_text())
+    return 0
+
+
+def flood(c: Container, *args: str) -> dict[str, Any]:
+    """prac-flood (clients/bench) against the container, on the core the server is not pinned to."""
+    flood_bin = pathlib.Path(os.environ.get("PRAC_BIN", REPO / "target" / "release" / "prac")).parent / "prac-flood"
+    assert flood_bin.exists(), f"{flood_bin} is not built (cargo build --release)"
+    command = [str(flood_bin), "--server", c.address, "--policy", "hopper", *args]
+    if (os.cpu_count() or 1) >= 2:
+        command = ["taskset", "-c", "1", *command]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=180)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    report: dict[str, Any] = json.loads(result.stdout)
+    return report
+
+
+# How a flood call may end: shed by the server with RESOURCE_EXHAUSTED, or never processed
+# (opened after its connection's GOAWAY, or queued on a connection that closed).
+CLEAN_ENDINGS = {"ResourceExhausted", "refused by GOAWAY", "connection closed"}
+
+
+@pytest.mark.parametrize("memory", ["96m", "256m"])
+def test_floods_of_never_started_calls_and_idle_watchers_never_get_the_container_killed(
+    images: dict[str, str], containers: list[Container], memory: str
+) -> None:
+    pin = ("--cpuset-cpus", "0") if (os.cpu_count() or 1) >= 2 else ()
+    c = Container(images["bundles"], options=("--memory", memory, *pin))
+    containers.append(c)
+    wait_health(c.health_address, "prac.v1.Prac", SERVING)
+    assert "from=the cgroup's limit" in c.logs(), c.logs()
+    cgroup = container_cgroup(c)
+    assert oom_kills(cgroup) == 0
+    # 176 connections x 250 StepStreams that send only their HEADERS, reopened as they end.
+    calls = flood(c, "--connections", "176", "--calls", "250", "--duration", "20s")
+    # Watchers of sessions that never step, 20,000 at once, reopened as they end.
+    watchers = flood(c, "--connections", "0", "--watchers", "20000", "--duration", "15s")
+    peak = peak_bytes(cgroup)
+    print(f"--memory {memory}: cgroup peak {peak / 2**20:.1f} MiB; calls {calls['calls_ended']['by_code']}; "
+          f"watchers {watchers['watchers_ended']['by_code']}; probe worst {calls['probe_first_answer_ms_max']:.0f} ms "
+          f"and {watchers['probe_first_answer_ms_max']:.0f} ms")
+    assert c.running(), c.logs()[-3000:]
+    assert oom_kills(cgroup) == 0, f"the kernel killed prac in {cgroup}"
+    for report, ended in ((calls, "calls_ended"), (watchers, "watchers_ended")):
+        codes = report[ended]["by_code"]
+        assert codes.get("ResourceExhausted", 0) > 0, report
+        assert set(codes) <= CLEAN_ENDINGS, json.dumps(report[ended], indent=1)
+        # A well-behaved client opened a session and had its first answer within a second, each time.
+        assert report["probes"] > 0 and report["probes_failed"] == 0, report["probe_failures"]
+        assert report["probes_over_1s"] == 0, report["probe_first_answer_ms_max"]
+        assert report["server_alive_after"]
+    metrics = urllib.request.urlopen(f"http://127.0.0.1:{c.metrics_port}/metrics", timeout=5).read().decode()
+    for action in ("call_reset", "watcher_reset", "goaway"):
+        assert re.search(rf'prac_memory_shed_total{{action="{action}"}} [1-9]', metrics), (action, metrics)
+    # Logged once per burst, not per call.
+    assert c.logs().count("memory budget past its high-water mark") <= 4, c.logs()[-3000:]
