@@ -160,7 +160,10 @@ async fn measure_item_costs() {
     // Each is a live watcher: answered with its first plan, no status.
     for response in watchers.drain(..3) {
         let response = response.await.unwrap();
-        assert!(response.headers().get("grpc-status").is_none(), "{response:?}");
+        assert!(
+            response.headers().get("grpc-status").is_none(),
+            "{response:?}"
+        );
     }
     drop(watchers);
     close(connections);

@@ -70,7 +70,8 @@ struct Args {
 /// How the flood's calls ended: by the gRPC status the server sent ("Ok" for a clean end of
 /// stream), or, for calls the server never processed, "refused by GOAWAY" (opened after the
 /// connection's GOAWAY: tonic reports these as INTERNAL) and "connection closed" (queued on, or
-/// still sending over, a connection that closed first: CANCELLED or UNKNOWN).
+/// still sending over, a connection that closed first, or whose client task ended with the
+/// flood: CANCELLED or UNKNOWN).
 #[derive(Default, Serialize)]
 struct Ended {
     by_code: BTreeMap<String, u64>,
@@ -93,6 +94,7 @@ fn transport_ending(status: &tonic::Status) -> Option<&'static str> {
             "broken pipe",
             "ConnectionReset",
             "connection reset",
+            "dispatch task is gone",
         ]
         .iter()
         .any(|closed| shown.contains(closed))
