@@ -179,7 +179,8 @@ pub(super) struct MemoryBudget {
     reserved: AtomicU64,
     /// Charged now, by item.
     used: [AtomicU64; 5],
-    /// Bytes of calls reset but not yet ended: counted as gone, so one burst is shed once.
+    /// Bytes of calls reset but not yet ended: left out when deciding how much more to shed, so
+    /// that one burst is shed once (admission still counts them until they let go).
     shedding: AtomicU64,
     pending: Mutex<BTreeMap<u64, Pending>>,
     watchers: Mutex<BTreeMap<u64, Watching>>,
