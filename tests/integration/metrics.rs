@@ -4,31 +4,10 @@
 
 use crate::common;
 
-use std::io::{Read, Write};
 use std::time::Duration;
 
-use common::{OBS, Server, bundle_dir};
+use common::{OBS, Server, bundle_dir, metrics_address, sample, scrape};
 use prac::proto;
-
-fn scrape(addr: &str) -> String {
-    let mut stream = std::net::TcpStream::connect(addr).unwrap();
-    write!(
-        stream,
-        "GET /metrics HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
-    )
-    .unwrap();
-    let mut text = String::new();
-    stream.read_to_string(&mut text).unwrap();
-    assert!(text.starts_with("HTTP/1.1 200"), "{text}");
-    text
-}
-
-/// The value of the sample line that starts with `name` (labels included).
-fn sample(text: &str, name: &str) -> f64 {
-    text.lines()
-        .find_map(|l| l.strip_prefix(name).and_then(|v| v.trim().parse().ok()))
-        .unwrap_or_else(|| panic!("no {name} in:\n{text}"))
-}
 
 /// A serving server with metrics on a free port, and the metrics address.
 async fn with_metrics(bundles: &std::path::Path, args: &[&str]) -> (Server, String) {
@@ -40,16 +19,6 @@ async fn with_metrics(bundles: &std::path::Path, args: &[&str]) -> (Server, Stri
     let addr = metrics_address(&server);
     server.wait_serving().await;
     (server, addr)
-}
-
-/// Where a server started with `--metrics-listen` serves its metrics.
-fn metrics_address(server: &Server) -> String {
-    server
-        .preamble
-        .iter()
-        .find_map(|l| l.strip_prefix("metrics on "))
-        .expect("the metrics address")
-        .to_string()
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
