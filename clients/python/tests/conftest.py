@@ -81,6 +81,19 @@ def with_layer_norm_critics(tensors: dict[str, Any], manifest: dict[str, Any], *
     return out, manifest
 
 
+def self_signed(directory: pathlib.Path, days: int = 1) -> tuple[pathlib.Path, pathlib.Path]:
+    """A self-signed certificate for localhost (ECDSA P-256) and its key, written into `directory`."""
+    cert, key = directory / "cert.pem", directory / "key.pem"
+    subprocess.run(
+        ["openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"]
+        + ["-keyout", str(key), "-out", str(cert), "-days", str(days), "-subj", "/CN=localhost"]
+        + ["-addext", "subjectAltName=DNS:localhost"],
+        check=True,
+        capture_output=True,
+    )
+    return cert, key
+
+
 class Server:
     def __init__(
         self,

@@ -1,6 +1,7 @@
 """deploy/prometheus and deploy/grafana against what they watch: the alert rules pass promtool's
-check and their unit tests, and every metric the rules and the dashboard name exists on a running
-server's /metrics. Needs promtool for the first (Debian's prometheus package)."""
+check and their unit tests, each alert's runbook is a section of docs/operations.md, and every
+metric the rules and the dashboard name exists on a running TLS server's /metrics. Needs promtool
+for the first (Debian's prometheus package) and openssl for the last."""
 
 from __future__ import annotations
 
@@ -16,9 +17,9 @@ import grpc
 import pytest
 import yaml
 
-from conftest import REPO, prac_bin
+from conftest import REPO, prac_bin, self_signed
 from deploy_support import tool
-from prac_client import Client, ServerUnavailable
+from prac_client import Client, ServerUnavailable, TlsConfig
 from prac_client._proto.prac.v1 import prac_pb2 as pb
 from prac_client._proto.prac.v1 import prac_pb2_grpc as pb_grpc
 
@@ -35,14 +36,20 @@ def test_the_alert_rules_pass_promtool_check_and_their_unit_tests() -> None:
     alerts = {r["alert"] for g in yaml.safe_load((PROMETHEUS / "rules" / "prac.rules.yml").read_text())["groups"] for r in g["rules"] if "alert" in r}
     tested = set(re.findall(r"alertname: (\w+)", (PROMETHEUS / "tests" / "prac.rules.test.yml").read_text()))
     assert alerts == tested, f"alerts without a unit test: {alerts - tested}"
-    assert {"PracDown", "PracNotServing", "PracReplanLatencyHigh", "PracResourceExhausted", "PracSessionsNearLimit", "PracReloadFailed"} <= alerts
+    assert {"PracDown", "PracNotServing", "PracReplanLatencyHigh", "PracResourceExhausted", "PracSessionsNearLimit", "PracReloadFailed",
+            "PracCertificateExpiresSoon", "PracCredentialReloadFailing"} <= alerts
 
 
 @pytest.fixture
 def metrics_text(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
-    """A server on the shipped bundles after a few steps, an error and a reload: its /metrics."""
+    """A TLS server (some metrics exist only with TLS) on the shipped bundles after a few steps,
+    an error, a changed certificate and a reload: its /metrics."""
+    tool("openssl")
+    directory = tmp_path_factory.mktemp("tls")
+    cert, key = self_signed(directory, days=30)
     process = subprocess.Popen(
-        [prac_bin(), "serve", "--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0", "--bundles", str(REPO / "bundles")],
+        [prac_bin(), "serve", "--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0", "--bundles", str(REPO / "bundles"),
+         "--tls-cert", str(cert), "--tls-key", str(key)],
         stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
     )
     try:
@@ -50,7 +57,9 @@ def metrics_text(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
         lines = [process.stdout.readline() for _ in range(2)]
         metrics = next(l for l in lines if l.startswith("metrics on ")).removeprefix("metrics on ").strip()
         address = next(l for l in lines if l.startswith("listening on ")).removeprefix("listening on ").strip()
-        with Client(address, timeout=10) as client:
+        # The certificate names localhost.
+        target = "localhost:" + address.rpartition(":")[2]
+        with Client(target, timeout=10, tls=TlsConfig(root_certificates=cert.read_bytes())) as client:
             deadline = time.monotonic() + 20
             while True:
                 try:
@@ -63,16 +72,24 @@ def metrics_text(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
             with client.session("pendulum", epsilon_coef=0.01) as session:
                 for t in range(10):
                     session.step([1.0, 0.0, 0.1 * t], new_episode=t == 0)
-        with grpc.insecure_channel(address) as channel:
+        with grpc.secure_channel(target, grpc.ssl_channel_credentials(cert.read_bytes())) as channel:
             with pytest.raises(grpc.RpcError):
                 pb_grpc.PracStub(channel).GetPlan(pb.GetPlanRequest(session_id="no-such-session"), timeout=5)
+        # A renewed certificate, as cert-manager writes one: the server re-reads it.
+        new_cert, new_key = self_signed(tmp_path_factory.mktemp("renewed"), days=30)
+        key.write_bytes(new_key.read_bytes())
+        cert.write_bytes(new_cert.read_bytes())
         process.send_signal(signal.SIGHUP)
         deadline = time.monotonic() + 20
         while True:
             text = urllib.request.urlopen(f"http://{metrics}/metrics", timeout=5).read().decode()
-            if "prac_reloads_total" in text:
+            live = exposed(text)
+            if {"prac_reloads_total", "prac_credential_reloads_total"} <= live:
                 break
-            assert time.monotonic() < deadline, text
+            if time.monotonic() > deadline:
+                # The test names whatever else is missing.
+                assert "prac_reloads_total" in live, text
+                break
             time.sleep(0.1)
         yield text
     finally:
@@ -105,3 +122,36 @@ def test_every_metric_the_dashboard_and_the_rules_name_is_on_a_live_server(metri
     for metric in ("prac_steps_total", "prac_step_latency_seconds_bucket", "prac_forecast_length_sum", "prac_f_t_sum",
                    "prac_plan_breaks_total", "prac_open_sessions", "prac_reloads_total"):
         assert metric in named(expressions), metric
+
+
+RUNBOOKS = "https://github.com/prac-rl/prac/blob/main/docs/operations.md#"
+
+
+def anchors(markdown: str) -> dict[str, str]:
+    """{anchor: heading} as GitHub makes them: lowercased, punctuation other than '-' and '_'
+    dropped, spaces to '-', and a repeated anchor numbered (-1, -2, ...). Fenced code is skipped."""
+    found: dict[str, str] = {}
+    fenced = False
+    for line in markdown.splitlines():
+        if line.startswith("```"):
+            fenced = not fenced
+        heading = re.match(r"#{1,6} (.+)", line)
+        if fenced or heading is None:
+            continue
+        slug = re.sub(r"[^\w\- ]", "", heading.group(1).strip().lower()).replace(" ", "-")
+        anchor, n = slug, 0
+        while anchor in found:
+            n += 1
+            anchor = f"{slug}-{n}"
+        found[anchor] = heading.group(1).strip()
+    return found
+
+
+def test_every_alert_links_its_runbook_in_docs_operations() -> None:
+    headings = anchors((REPO / "docs" / "operations.md").read_text())
+    assert headings["alerts"] == "Alerts" and headings["hot-reload-sighup"] == "Hot reload (SIGHUP)"
+    rules = yaml.safe_load((PROMETHEUS / "rules" / "prac.rules.yml").read_text())
+    for rule in (r for g in rules["groups"] for r in g["rules"] if "alert" in r):
+        url = rule["annotations"].get("runbook_url", "")
+        assert url.startswith(RUNBOOKS), (rule["alert"], url)
+        assert headings.get(url.removeprefix(RUNBOOKS)) == rule["alert"], (rule["alert"], url)

@@ -21,7 +21,7 @@ import prac_client
 from prac_client import Client, StepResult, aio
 from prac_client._proto.prac.v1 import prac_pb2 as pb
 
-from conftest import REPO, Server, write_toy_bundle
+from conftest import REPO, Server, self_signed, write_toy_bundle
 
 # A wide tolerance keeps every plan, so the action executed is the one committed for the step.
 KEEP_ALL = {"epsilon": 1e6, "max_horizon": 16}
@@ -88,18 +88,6 @@ def check_episode(results: list[StepResult], reference: list[StepResult]) -> Non
         np.testing.assert_allclose(r.action, ref.action, atol=1e-5, err_msg=f"step {t}")
         if t > 0:
             np.testing.assert_allclose(r.action, results[t - 1].forecast_actions[1], atol=1e-5)
-
-
-def self_signed(directory: pathlib.Path) -> tuple[pathlib.Path, pathlib.Path]:
-    cert, key = directory / "cert.pem", directory / "key.pem"
-    subprocess.run(
-        ["openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"]
-        + ["-keyout", str(key), "-out", str(cert), "-days", "1", "-subj", "/CN=localhost"]
-        + ["-addext", "subjectAltName=DNS:localhost"],
-        check=True,
-        capture_output=True,
-    )
-    return cert, key
 
 
 @pytest.mark.parametrize("security", ["plaintext", "token", "tls"])
