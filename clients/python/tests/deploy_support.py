@@ -1,5 +1,5 @@
-"""What the deploy tests share: the tools they need (podman, kubectl, promtool), the image that
-`scripts/container build` makes, containers run from it, and grpc.health.v1 checks."""
+"""What the deploy tests share: the tools they need (podman, kubectl, promtool, node), the image
+that `scripts/container build` makes, containers run from it, and grpc.health.v1 checks."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import socket
 import subprocess
 import time
 import uuid
+from typing import NoReturn
 
 import grpc
 import pytest
@@ -29,16 +30,35 @@ def version() -> str:
     return found.group(1)
 
 
+def missing(name: str, what: str, remedy: str) -> NoReturn:
+    """Skips the test for want of `name`, or fails where PRAC_REQUIRE_DEPLOY is set (.ci/run
+    provides them all) and PRAC_REQUIRE_DEPLOY_EXCEPT does not name it."""
+    excepted = os.environ.get("PRAC_REQUIRE_DEPLOY_EXCEPT", "").split(",")
+    required = "PRAC_REQUIRE_DEPLOY" in os.environ and name not in excepted
+    assert not required, f"PRAC_REQUIRE_DEPLOY is set but {what}"
+    pytest.skip(f"{what}, so this deploy test was skipped ({remedy})")
+
+
 def tool(name: str) -> str:
-    """The tool's path; without it the test is skipped, or fails where PRAC_REQUIRE_DEPLOY is set
-    (.ci/run installs them) and PRAC_REQUIRE_DEPLOY_EXCEPT does not name it."""
+    """The tool's path; without it the test is skipped or fails (missing())."""
     path = shutil.which(name) or next((p for p in (f"/usr/sbin/{name}", f"/usr/bin/{name}") if os.path.exists(p)), None)
     if path is None:
-        excepted = os.environ.get("PRAC_REQUIRE_DEPLOY_EXCEPT", "").split(",")
-        required = "PRAC_REQUIRE_DEPLOY" in os.environ and name not in excepted
-        assert not required, f"PRAC_REQUIRE_DEPLOY is set but {name} is not installed"
-        pytest.skip(f"{name} is not installed, so this deploy test was skipped (.ci/run installs it)")
+        missing(name, f"{name} is not installed", ".ci/run installs it")
     return path
+
+
+SCHEMA_CHECK = REPO / "deploy" / "k8s" / "schema-check"
+
+
+def schema_check() -> list[str]:
+    """The command that checks custom resources against their operators' schemas
+    (deploy/k8s/schema-check/validate.mjs): it needs node and the folder's npm packages, which
+    scripts/test installs there (`npm ci`) where npm is."""
+    node = tool("node")
+    if not (SCHEMA_CHECK / "node_modules").is_dir():
+        missing("schema-check", f"{SCHEMA_CHECK.relative_to(REPO)}/node_modules is missing",
+                f"npm ci --prefix {SCHEMA_CHECK.relative_to(REPO)} installs it; scripts/test does")
+    return [node, str(SCHEMA_CHECK / "validate.mjs")]
 
 
 def free_port() -> int:
