@@ -1,17 +1,17 @@
 //! Optional bearer-token auth: `--auth-tokens FILE` holds one token per line (blank lines and
 //! `#` comments ignored). Every prac.v1 call must carry `authorization: Bearer TOKEN`; health
 //! and reflection stay open for probes. A caller is known by a digest of its token (the token
-//! itself is never stored or logged), and a session belongs to the caller that opened it.
+//! itself is never stored or logged), and a session belongs to the caller that opened it. The
+//! file is re-read while serving (`credentials`): a removed token is refused from its next call.
 
 use std::collections::HashSet;
-use std::path::Path;
+use std::sync::RwLock;
 
-use anyhow::Context;
 use sha2::{Digest, Sha256};
 use tonic::Status;
 
 pub(super) struct Tokens {
-    digests: HashSet<[u8; 32]>,
+    digests: RwLock<HashSet<[u8; 32]>>,
 }
 
 fn digest(token: &str) -> [u8; 32] {
@@ -19,12 +19,6 @@ fn digest(token: &str) -> [u8; 32] {
 }
 
 impl Tokens {
-    pub(super) fn load(path: &Path) -> anyhow::Result<Tokens> {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("cannot read auth tokens {}", path.display()))?;
-        Tokens::parse(&text).with_context(|| format!("auth tokens {}", path.display()))
-    }
-
     pub(super) fn parse(text: &str) -> anyhow::Result<Tokens> {
         let mut digests = HashSet::new();
         for (i, line) in text.lines().enumerate() {
@@ -40,7 +34,22 @@ impl Tokens {
             digests.insert(digest(token));
         }
         anyhow::ensure!(!digests.is_empty(), "no tokens");
-        Ok(Tokens { digests })
+        Ok(Tokens {
+            digests: RwLock::new(digests),
+        })
+    }
+
+    /// Serves `newer`'s tokens from the next call on.
+    pub(super) fn replace_with(&self, newer: Tokens) {
+        let digests = newer
+            .digests
+            .into_inner()
+            .unwrap_or_else(|p| p.into_inner());
+        *self.digests.write().unwrap_or_else(|p| p.into_inner()) = digests;
+    }
+
+    pub(super) fn len(&self) -> usize {
+        self.digests.read().unwrap_or_else(|p| p.into_inner()).len()
     }
 
     /// The caller's identity from a request's HTTP/2 headers: a hex digest prefix of its token.
@@ -54,7 +63,12 @@ impl Tokens {
             .and_then(|v| v.strip_prefix("Bearer "))
             .ok_or_else(|| Status::unauthenticated("authorization must be 'Bearer TOKEN'"))?;
         let d = digest(token.trim());
-        if self.digests.contains(&d) {
+        let known = self
+            .digests
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .contains(&d);
+        if known {
             Ok(hex::encode(&d[..8]))
         } else {
             Err(Status::unauthenticated("invalid bearer token"))
@@ -106,6 +120,19 @@ mod tests {
             tokens.caller(&md).unwrap_err().code(),
             tonic::Code::Unauthenticated
         );
+        let gamma = Tokens::parse("gamma-0123456789abcdef\n").unwrap();
+        tokens.replace_with(gamma);
+        assert_eq!(tokens.len(), 1);
+        md.insert(
+            "authorization",
+            "Bearer gamma-0123456789abcdef".parse().unwrap(),
+        );
+        assert!(tokens.caller(&md).is_ok());
+        md.insert(
+            "authorization",
+            "Bearer alpha-0123456789abcdef".parse().unwrap(),
+        );
+        assert!(tokens.caller(&md).is_err());
         assert!(Tokens::parse("# nothing\n").is_err());
         assert!(Tokens::parse("short\n").is_err());
     }

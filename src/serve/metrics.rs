@@ -39,6 +39,10 @@ pub(super) struct Metrics {
     build_info: Family<Labels, Gauge>,
     errors: Family<Labels, Counter>,
     reloads: Family<Labels, Counter>,
+    credential_reloads: Family<Labels, Counter>,
+    /// One sample, labelled with the certificate's path, once TLS is on: a plaintext server
+    /// exports none, so it never looks expired.
+    certificate_expiry: Family<Labels, Gauge>,
     replanned: Family<Labels, Counter>,
     /// The two `replanned` counters, each taken from the family at its first step, so that
     /// counting a step allocates nothing after.
@@ -91,6 +95,8 @@ impl Default for Metrics {
             build_info: Family::default(),
             errors: Family::default(),
             reloads: Family::default(),
+            credential_reloads: Family::default(),
+            certificate_expiry: Family::default(),
             replanned: Family::default(),
             replanned_by_handler: OnceLock::new(),
             replanned_by_batch_worker: OnceLock::new(),
@@ -172,6 +178,16 @@ impl Default for Metrics {
             "reloads",
             "Bundle reloads (SIGHUP), by result",
             m.reloads.clone(),
+        );
+        r.register(
+            "tls_cert_expiry_timestamp_seconds",
+            "When the certificate served to new connections expires (its notAfter), in Unix seconds",
+            m.certificate_expiry.clone(),
+        );
+        r.register(
+            "credential_reloads",
+            "Changed certificate and token files loaded (ok) or refused, the old ones kept (error)",
+            m.credential_reloads.clone(),
         );
         r.register(
             "memory_limit_bytes",
@@ -276,6 +292,38 @@ impl Metrics {
             .inc();
     }
 
+    pub(super) fn credential_reload(&self, file: &str, ok: bool) {
+        let result = if ok { "ok" } else { "error" };
+        self.credential_reloads
+            .get_or_create(&vec![
+                ("file", file.to_string()),
+                ("result", result.to_string()),
+            ])
+            .inc();
+    }
+
+    #[cfg(test)]
+    pub(super) fn credential_reloads(&self, file: &str, ok: bool) -> u64 {
+        let result = if ok { "ok" } else { "error" };
+        self.credential_reloads
+            .get_or_create(&vec![
+                ("file", file.to_string()),
+                ("result", result.to_string()),
+            ])
+            .get()
+    }
+
+    /// Exports the served certificate's expiry.
+    pub(super) fn set_certificate_expiry(&self, cert: &std::path::Path, not_after: i64) {
+        self.certificate_expiry
+            .get_or_create(&vec![("cert", cert.display().to_string())])
+            .set(not_after);
+    }
+
+    pub(super) fn is_serving(&self) -> bool {
+        self.serving.get() == 1
+    }
+
     /// The memory budget's numbers, as read now.
     pub(super) fn memory(&self, snapshot: &Snapshot) {
         let gauge = |g: &Gauge, v: u64| g.set(i64::try_from(v).unwrap_or(i64::MAX));
@@ -324,6 +372,16 @@ async fn scrape(State(scrape): State<Scrape>) -> impl IntoResponse {
         .unwrap_or_else(|_| StatusCode::INTERNAL_SERVER_ERROR.into_response())
 }
 
+/// `GET /readyz`: 200 while prac.v1.Prac is SERVING, else 503, for load balancers and proxies
+/// that check health over HTTP/1.1 rather than gRPC (HAProxy, cloud load balancers).
+async fn readyz(State(metrics): State<Arc<Metrics>>) -> impl IntoResponse {
+    if metrics.is_serving() {
+        (StatusCode::OK, "SERVING\n")
+    } else {
+        (StatusCode::SERVICE_UNAVAILABLE, "NOT_SERVING\n")
+    }
+}
+
 /// Connections the metrics endpoint holds at once: scrapers are few.
 pub(super) const MAX_METRICS_CONNECTIONS: usize = 64;
 
@@ -334,12 +392,13 @@ const METRICS_HEADER_DEADLINE: Duration = Duration::from_secs(2);
 /// Largest request head (request line and headers) the metrics endpoint reads.
 const MAX_METRICS_REQUEST_BYTES: usize = 16 * 1024;
 
-/// Serves `/metrics` on `listener` until shutdown: one request per connection, whose whole life
+/// Serves `/metrics` and `/readyz` on `listener` until shutdown: one request per connection, whose whole life
 /// (request, scrape, response read) must fit in the handshake timeout, so slow or silent clients
 /// cannot hold the endpoint; at most [`MAX_METRICS_CONNECTIONS`] at once.
 pub(super) async fn serve(
     listener: tokio::net::TcpListener,
     scrape_text: Scrape,
+    readiness: Arc<Metrics>,
     limits: Limits,
     shutdown: CancellationToken,
 ) {
@@ -347,7 +406,12 @@ pub(super) async fn serve(
     use tonic::codegen::Service;
     let router = Router::new()
         .route("/metrics", get(scrape))
-        .with_state(scrape_text);
+        .with_state(scrape_text)
+        .merge(
+            Router::new()
+                .route("/readyz", get(readyz))
+                .with_state(readiness),
+        );
     let stats = Arc::new(ConnectionStats::default());
     let cap = MAX_METRICS_CONNECTIONS.min(limits.max_connections);
     let lifetime = limits.handshake_timeout;

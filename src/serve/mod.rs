@@ -4,6 +4,7 @@ pub(crate) mod arrival;
 mod auth;
 mod batch;
 mod config;
+mod credentials;
 mod deadline;
 mod health;
 mod intake;
@@ -101,14 +102,15 @@ fn termination_signal() -> impl Future<Output = ()> + Send + 'static {
 /// yet filled), the directory is read again this often.
 const RETRY_EMPTY_BUNDLES: std::time::Duration = std::time::Duration::from_secs(10);
 
-/// Hot reload: on each SIGHUP, and every [`RETRY_EMPTY_BUNDLES`] while nothing is served, re-reads
-/// the bundle directory ([`Registry::reload`]). New sessions get the new versions; open sessions
+/// Hot reload: on each SIGHUP (which also re-reads changed certificate and token files), and
+/// every [`RETRY_EMPTY_BUNDLES`] while nothing is served, re-reads the bundle directory ([`Registry::reload`]). New sessions get the new versions; open sessions
 /// keep the policy they opened with until they close; a broken new file keeps the old version.
 #[cfg(unix)]
 async fn reload_on_hangup(
     state: Arc<ServerState>,
     dir: std::path::PathBuf,
     health: Health,
+    credentials: Arc<credentials::Credentials>,
     hangup: Option<tokio::signal::unix::Signal>,
     max_sessions: usize,
     threads: usize,
@@ -130,6 +132,8 @@ async fn reload_on_hangup(
                 if signal.is_none() {
                     return;
                 }
+                let credentials = credentials.clone();
+                let _ = tokio::task::spawn_blocking(move || credentials.reload_changed()).await;
                 false
             }
             _ = retry.tick(), if serving_none => true,
@@ -207,7 +211,9 @@ pub(crate) struct Bound {
     /// The plaintext health port's, when asked for.
     pub(crate) health: Option<TcpListener>,
     tls: Option<tokio_rustls::TlsAcceptor>,
-    auth: Option<auth::Tokens>,
+    credentials: Arc<credentials::Credentials>,
+    /// The server's metrics, made here so that loading the credentials can record theirs.
+    telemetry: Arc<metrics::Metrics>,
     limits: transport::Limits,
     /// SIGHUP's handler, installed before the ready line: a SIGHUP's default action would end
     /// the process.
@@ -219,21 +225,15 @@ pub(crate) struct Bound {
 /// listeners. Anything wrong stops the server here, before its ready line: a supervisor waiting
 /// for `listening on` must not see it from a server that is about to exit.
 pub(crate) async fn bind(config: &ServeConfig) -> anyhow::Result<Bound> {
-    // A bad token file stops the server: starting without the auth it was asked for is worse.
-    let auth = config
-        .auth_tokens
-        .as_deref()
-        .map(auth::Tokens::load)
-        .transpose()?;
-    let tls = match &config.tls {
-        Some((cert, key)) => {
-            let read = |p: &std::path::Path| {
-                std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))
-            };
-            Some(transport::tls_acceptor(&read(cert)?, &read(key)?)?)
-        }
-        None => None,
-    };
+    // A bad token file or certificate stops the server: starting without the auth or the TLS
+    // it was asked for is worse.
+    let telemetry = Arc::new(metrics::Metrics::default());
+    let credentials = Arc::new(credentials::Credentials::load(
+        config.tls.as_ref(),
+        config.auth_tokens.as_deref(),
+        telemetry.clone(),
+    )?);
+    let tls = credentials.acceptor()?;
     let mut limits = config.connections;
     let (soft, hard) =
         transport::raise_open_file_limit().context("cannot read the open-file limit")?;
@@ -291,7 +291,8 @@ pub(crate) async fn bind(config: &ServeConfig) -> anyhow::Result<Bound> {
         metrics,
         health,
         tls,
-        auth,
+        credentials,
+        telemetry,
         limits,
         #[cfg(unix)]
         hangup,
@@ -365,7 +366,16 @@ pub(crate) async fn serve(
     reporter
         .set_service_status(LIVENESS_SERVICE, ServingStatus::Serving)
         .await;
-    let state = server_state(config, bound.auth, cancel.clone())?;
+    let state = server_state(
+        config,
+        bound.credentials.tokens(),
+        bound.telemetry,
+        cancel.clone(),
+    )?;
+    tokio::spawn(credentials::watch(
+        bound.credentials.clone(),
+        cancel.clone(),
+    ));
     let health = Health {
         reporter,
         metrics: state.metrics.clone(),
@@ -446,6 +456,7 @@ pub(crate) async fn serve(
     }
     if let Some(listener) = bound.metrics {
         let (sessions, metrics) = (state.sessions.clone(), state.metrics.clone());
+        let readiness = state.metrics.clone();
         let budget = state.budget.clone();
         let scrape: metrics::Scrape = Arc::new(move || {
             metrics.memory(&budget.snapshot());
@@ -454,6 +465,7 @@ pub(crate) async fn serve(
         tokio::spawn(metrics::serve(
             listener,
             scrape,
+            readiness,
             bound.limits,
             cancel.clone(),
         ));
@@ -487,6 +499,7 @@ pub(crate) async fn serve(
         state.clone(),
         config.bundles.clone(),
         health.clone(),
+        bound.credentials.clone(),
         hangup,
         config.max_sessions,
         replanning_threads(config),
@@ -521,11 +534,10 @@ pub(crate) async fn serve(
 /// What the handlers share, before any bundle is loaded.
 fn server_state(
     config: &ServeConfig,
-    auth: Option<auth::Tokens>,
+    auth: Option<Arc<auth::Tokens>>,
+    metrics: Arc<metrics::Metrics>,
     cancel: CancellationToken,
 ) -> anyhow::Result<Arc<ServerState>> {
-    let auth = auth.map(Arc::new);
-    let metrics = Arc::new(metrics::Metrics::default());
     metrics.set_max_sessions(config.max_sessions);
     let limit = memory::limit::resolve(config.max_memory)?;
     tracing::info!(

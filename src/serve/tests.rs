@@ -30,7 +30,13 @@ fn config(dir: &std::path::Path, change: impl FnOnce(&mut ServeArgs)) -> ServeCo
 
 /// The service over a state built as `serve` builds it, with the bundles of `config` loaded.
 fn service(config: &ServeConfig) -> PracService {
-    let state = server_state(config, None, CancellationToken::new()).unwrap();
+    let state = server_state(
+        config,
+        None,
+        Arc::new(super::metrics::Metrics::default()),
+        CancellationToken::new(),
+    )
+    .unwrap();
     let loaded = Registry::load_dir(&config.bundles).unwrap();
     assert!(loaded.errors.is_empty());
     *state.registry.write().unwrap() = Some(Arc::new(loaded.registry));
@@ -276,7 +282,13 @@ async fn handlers_take_the_caller_the_intake_attached() {
     let dir = toy_bundles();
     let config = config(dir.path(), |_| {});
     let tokens = auth::Tokens::parse("alpha-0123456789abcdef\n").unwrap();
-    let state = server_state(&config, Some(tokens), CancellationToken::new()).unwrap();
+    let state = server_state(
+        &config,
+        Some(Arc::new(tokens)),
+        Arc::new(super::metrics::Metrics::default()),
+        CancellationToken::new(),
+    )
+    .unwrap();
     let loaded = Registry::load_dir(&config.bundles).unwrap();
     *state.registry.write().unwrap() = Some(Arc::new(loaded.registry));
     let service = PracService { state };

@@ -614,29 +614,3 @@ impl HttpBody for TrackedBody {
         self.inner.size_hint()
     }
 }
-
-/// A TLS acceptor for HTTP/2 from a PEM certificate chain and key (rustls with ring).
-pub(super) fn tls_acceptor(cert_pem: &[u8], key_pem: &[u8]) -> anyhow::Result<TlsAcceptor> {
-    use anyhow::Context as _;
-    use tokio_rustls::rustls;
-    use tokio_rustls::rustls::pki_types::pem::PemObject;
-    use tokio_rustls::rustls::pki_types::{CertificateDer, PrivateKeyDer};
-    let certs = CertificateDer::pem_slice_iter(cert_pem)
-        .collect::<Result<Vec<_>, _>>()
-        .context("the TLS certificate is not valid PEM")?;
-    anyhow::ensure!(
-        !certs.is_empty(),
-        "the TLS certificate file holds no certificate"
-    );
-    let key = PrivateKeyDer::from_pem_slice(key_pem)
-        .context("the TLS key is not a valid PEM private key")?;
-    let provider = Arc::new(rustls::crypto::ring::default_provider());
-    let mut config = rustls::ServerConfig::builder_with_provider(provider)
-        .with_safe_default_protocol_versions()
-        .context("TLS protocol versions")?
-        .with_no_client_auth()
-        .with_single_cert(certs, key)
-        .context("the TLS certificate and key do not make a valid pair")?;
-    config.alpn_protocols = vec![b"h2".to_vec()];
-    Ok(TlsAcceptor::from(Arc::new(config)))
-}

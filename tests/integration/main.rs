@@ -16,5 +16,6 @@ mod render;
 mod replicas;
 mod requests;
 mod resume;
+mod rotation;
 mod server;
 mod train;
