@@ -181,7 +181,11 @@ _built: dict[str, str] = {}
 
 
 def built_images() -> dict[str, str]:
-    """`scripts/container build --with-bundles`, once per test run: {"bare": tag, "bundles": tag}."""
+    """`scripts/container build --with-bundles`, once per test run: {"bare": tag, "bundles": tag}.
+    PRAC_IMAGES_BUILT=1 uses the images already built (after `scripts/container build
+    --with-bundles`), to rerun container tests without a cargo build."""
+    if not _built and os.environ.get("PRAC_IMAGES_BUILT") == "1":
+        _built.update(bare=f"prac:{version()}", bundles=f"prac:{version()}-bundles")
     if not _built:
         tool("podman")
         result = subprocess.run(

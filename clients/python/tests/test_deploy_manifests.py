@@ -24,7 +24,15 @@ from deploy_support import SERVING, built_images, free_port, health, tool, wait_
 K8S = REPO / "deploy" / "k8s"
 KUSTOMIZATIONS = [K8S / "base", *sorted(p for p in (K8S / "overlays").iterdir() if p.is_dir())]
 VERSIONS = sorted(set(kubernetes_validate.utils.all_versions()), key=lambda v: tuple(int(x) for x in v.split(".")))
-OLDEST, NEWEST = VERSIONS[0], VERSIONS[-1]
+# The Kubernetes versions deploy/k8s supports (docs/deploy.md): 1.27, where gRPC probes are GA
+# and matchLabelKeys is on by default, to the newest kubernetes-validate ships.
+OLDEST, NEWEST = "1.27.0", VERSIONS[-1]
+# Overlays that need a newer cluster: image volumes with subPath arrived in 1.33.
+NEEDS = {"image-volume": "1.33.0"}
+
+
+def version_key(version: str) -> tuple[int, ...]:
+    return tuple(int(x) for x in version.split("."))
 
 
 def render(path: pathlib.Path) -> list[dict[str, Any]]:
@@ -54,6 +62,8 @@ def built_in(doc: dict[str, Any]) -> bool:
 @pytest.mark.parametrize("path", KUSTOMIZATIONS, ids=lambda p: p.name)
 @pytest.mark.parametrize("version", [OLDEST, NEWEST])
 def test_every_overlay_passes_the_kubernetes_schemas_strictly(path: pathlib.Path, version: str) -> None:
+    assert OLDEST in VERSIONS
+    version = max(version, NEEDS.get(path.name, OLDEST), key=version_key)
     docs = render(path)
     assert any(d["kind"] == "Deployment" for d in docs)
     own = [d for d in docs if built_in(d)]
@@ -78,12 +88,13 @@ def test_probes_ports_and_the_drain_agree_with_the_image_and_the_config() -> Non
     for flag, port in (("--listen", ports["grpc"]), ("--health-listen", ports["health"]), ("--metrics-listen", ports["metrics"])):
         assert re.search(rf'"{flag}", "0\.0\.0\.0:{port}"', containerfile), (flag, port)
     # The kubelet's gRPC probes reach the plaintext health port, never the TLS + token one.
-    for probe in ("livenessProbe", "readinessProbe", "startupProbe"):
+    for probe in ("livenessProbe", "readinessProbe"):
         assert container[probe]["grpc"]["port"] == ports["health"], probe
     assert container["readinessProbe"]["grpc"]["service"] == "prac.v1.Prac"
     assert container["livenessProbe"]["grpc"]["service"] == "liveness"
-    # A startup probe on readiness would restart a pod whose bundles are missing: a crash loop.
-    assert container["startupProbe"]["grpc"]["service"] == "liveness"
+    # Liveness answers at once and the init container has checked the bundles: a startup
+    # probe would wait for nothing.
+    assert "startupProbe" not in container
     config = tomllib.loads(find(docs, "ConfigMap")["data"]["prac.toml"])
     drain = int(config["drain_timeout"].removesuffix("s"))
     pause = container["lifecycle"]["preStop"]["exec"]["command"]
@@ -153,3 +164,66 @@ def test_podman_kube_play_of_the_rendered_deployment_answers_health(played: dict
     assert health(f"127.0.0.1:{played['grpc']}", "prac.v1.Prac") == SERVING
     metrics = urllib.request.urlopen(f"http://127.0.0.1:{played['metrics']}/metrics", timeout=5).read().decode()
     assert "prac_serving 1" in metrics
+
+
+def bundles_volume(docs: list[dict[str, Any]]) -> dict[str, Any]:
+    pod = find(docs, "Deployment", "prac")["spec"]["template"]["spec"]
+    volume: dict[str, Any] = next(v for v in pod["volumes"] if v["name"] == "bundles")
+    return volume
+
+
+def test_bundles_arrive_from_an_image_by_default_and_no_claim_is_read_only_many() -> None:
+    base = render(K8S / "base")
+    pod = find(base, "Deployment", "prac")["spec"]["template"]["spec"]
+    (init,) = pod["initContainers"]
+    assert init["command"][1:] == ["copy-bundles", "/bundles", "/copy"]
+    assert init["image"].endswith("-bundles")
+    assert "emptyDir" in bundles_volume(base)
+    assert not [d for d in base if d["kind"] == "PersistentVolumeClaim"]
+
+    image = render(K8S / "overlays" / "image-volume")
+    assert "initContainers" not in find(image, "Deployment", "prac")["spec"]["template"]["spec"]
+    assert bundles_volume(image)["image"]["reference"] == init["image"]
+    mount = next(m for m in server_container(image)["volumeMounts"] if m["name"] == "bundles")
+    assert (mount["mountPath"], mount["subPath"]) == ("/bundles", "bundles")
+
+    shared = render(K8S / "overlays" / "shared-volume")
+    claim = find(shared, "PersistentVolumeClaim", "prac-bundles")
+    assert claim["spec"]["accessModes"] == ["ReadWriteMany"]
+    assert bundles_volume(shared)["persistentVolumeClaim"] == {"claimName": "prac-bundles", "readOnly": True}
+    job = find(shared, "Job", "prac-bundles-writer")["spec"]["template"]["spec"]
+    assert job["containers"][0]["command"] == init["command"]
+    assert job["containers"][0]["image"] == init["image"]
+    assert job["volumes"][0]["persistentVolumeClaim"]["claimName"] == "prac-bundles"
+
+    for path in KUSTOMIZATIONS:
+        for doc in render(path):
+            if doc["kind"] == "PersistentVolumeClaim":
+                assert "ReadOnlyMany" not in doc["spec"]["accessModes"], path
+
+
+def test_the_network_policies_take_their_namespaces_from_one_place() -> None:
+    network = yaml.safe_load((K8S / "base" / "network.yaml").read_text())["data"]
+    for path in KUSTOMIZATIONS:
+        docs = render(path)
+        assert not [d for d in docs if d["metadata"]["name"] == "prac-network"], "build-time only"
+        for policy in (d for d in docs if d["kind"] == "NetworkPolicy"):
+            text = yaml.safe_dump(policy)
+            assert "_NAMESPACE" not in text, (path, policy["metadata"]["name"])
+    server = find(render(K8S / "base"), "NetworkPolicy", "prac")["spec"]["ingress"]
+    by_port = {rule["ports"][0]["port"]: rule["from"][0]["namespaceSelector"]["matchLabels"] for rule in server}
+    assert by_port["grpc"] == {"kubernetes.io/metadata.name": network["clientNamespace"]}
+    assert by_port["metrics"] == {"kubernetes.io/metadata.name": network["monitoringNamespace"]}
+
+
+def test_replicas_spread_per_rollout_and_the_guaranteed_overlay_gives_whole_cores() -> None:
+    base = find(render(K8S / "base"), "Deployment", "prac")["spec"]["template"]["spec"]
+    for spread in base["topologySpreadConstraints"]:
+        assert spread["matchLabelKeys"] == ["pod-template-hash"]
+    assert "cpu" not in base["containers"][0]["resources"]["limits"], "the base is not throttled"
+    pod = find(render(K8S / "overlays" / "guaranteed"), "Deployment", "prac")["spec"]["template"]["spec"]
+    # Guaranteed QoS: every container, init ones included, with requests equal to limits.
+    for container in pod["containers"] + pod["initContainers"]:
+        resources = container["resources"]
+        assert resources["requests"] == resources["limits"], container["name"]
+        assert str(resources["requests"]["cpu"]).isdigit(), "whole cores, for the static CPU manager"
