@@ -4,14 +4,17 @@ unless PRAC_REQUIRE_DEPLOY is set)."""
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import pathlib
 import re
 import shutil
 import subprocess
+import tarfile
 import threading
 import time
+import tomllib
 import urllib.request
 from typing import Any, Iterator
 
@@ -20,9 +23,9 @@ import numpy as np
 import pytest
 from grpc_reflection.v1alpha.proto_reflection_descriptor_database import ProtoReflectionDescriptorDatabase
 
-from conftest import REPO
+from conftest import REPO, self_signed
 from deploy_support import NOT_SERVING, SERVING, Container, built_images, free_port, health, tool, wait_health, world_readable_dir
-from prac_client import Client
+from prac_client import Client, TlsConfig
 from prac_client._proto.prac.v1 import prac_pb2 as pb
 from prac_client._proto.prac.v1 import prac_pb2_grpc as pb_grpc
 
@@ -77,6 +80,40 @@ def test_the_bare_image_is_small_non_root_and_runs_prac_serve(images: dict[str, 
     commands = set(re.findall(r"^  ([a-z-]+) ", help_text, re.MULTILINE))
     assert {"serve", "copy-bundles", "sleep"} <= commands, commands
     assert not commands & {"train", "fit-model", "bench-train", "render"}, commands
+
+
+def test_the_images_carry_their_source_revision_and_a_list_of_their_rust_crates(images: dict[str, str]) -> None:
+    cargo = tomllib.loads((REPO / "Cargo.toml").read_text())["package"]
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
+    for image in images.values():
+        labels = podman_inspect(image)["Labels"]
+        assert isinstance(labels, dict)
+        assert labels["org.opencontainers.image.source"] == cargo["repository"]
+        assert re.fullmatch(r"[0-9a-f]{40}", labels["org.opencontainers.image.revision"]), labels
+        assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ", labels["org.opencontainers.image.created"]), labels
+        if head:
+            print(f"{image}: revision {labels['org.opencontainers.image.revision'][:12]} (HEAD {head[:12]})")
+    # The SBOM inside the image: the crates of the serving-only build, not the training ones.
+    podman = tool("podman")
+    name = f"prac-sbom-{free_port()}"
+    subprocess.run([podman, "create", "--name", name, images["bare"]], check=True, capture_output=True)
+    try:
+        text = subprocess.run([podman, "cp", f"{name}:/usr/share/doc/prac/sbom.cdx.json", "-"], check=True, capture_output=True).stdout
+    finally:
+        subprocess.run([podman, "rm", "-f", name], capture_output=True)
+    with tarfile.open(fileobj=io.BytesIO(text)) as archive:
+        member = archive.extractfile("sbom.cdx.json")
+        assert member is not None
+        sbom = json.load(member)
+    beside = json.loads((REPO / "target" / "container" / f"prac-{cargo['version']}.cdx.json").read_text())
+    assert sbom == beside
+    assert sbom["bomFormat"] == "CycloneDX" and sbom["metadata"]["component"]["name"] == "prac"
+    crates = {c["name"]: c["version"] for c in sbom["components"]}
+    lock = {p["name"]: p["version"] for p in tomllib.loads((REPO / "Cargo.lock").read_text())["package"]}
+    for crate in ("tonic", "tokio", "rustls", "safetensors", "prost"):
+        assert crates[crate] == lock[crate], crate
+    assert "burn" not in crates and "plotters" not in crates, "training and rendering are not in the image"
+    print(f"SBOM: {len(crates)} crates, CycloneDX {sbom['specVersion']}")
 
 
 def test_a_locked_down_container_serves_health_reflection_and_a_session(images: dict[str, str], containers: list[Container]) -> None:
@@ -339,3 +376,87 @@ def test_floods_of_never_started_calls_and_idle_watchers_never_get_the_container
         assert re.search(rf'prac_memory_shed_total{{action="{action}"}} [1-9]', metrics), (action, metrics)
     # Logged once per burst, not per call.
     assert c.logs().count("memory budget past its high-water mark") <= 4, c.logs()[-3000:]
+
+
+def kubelet_publish(root: pathlib.Path, files: dict[str, bytes], version: int) -> None:
+    """Updates a mounted Secret's folder the way kubelet does: the files into a new
+    timestamped folder, then the `..data` symlink renamed onto it, so every name switches at once."""
+    folder = root / f"..2026_12_07_00_00_{version:02d}.{version}"
+    folder.mkdir(mode=0o755)
+    folder.chmod(0o755)
+    for name, data in files.items():
+        (folder / name).write_bytes(data)
+        (folder / name).chmod(0o644)
+        if not (root / name).is_symlink():
+            (root / name).symlink_to(f"..data/{name}")
+    (root / "..data_tmp").symlink_to(folder.name)
+    (root / "..data_tmp").rename(root / "..data")
+
+
+def credential_reloads(c: Container, file: str, result: str) -> float:
+    text = urllib.request.urlopen(f"http://127.0.0.1:{c.metrics_port}/metrics", timeout=5).read().decode()
+    prefix = f'prac_credential_reloads_total{{file="{file}",result="{result}"}} '
+    return next((float(line.removeprefix(prefix)) for line in text.splitlines() if line.startswith(prefix)), 0.0)
+
+
+def wait_reloads(c: Container, file: str, result: str, count: float) -> None:
+    deadline = time.monotonic() + 20
+    while credential_reloads(c, file, result) < count:
+        assert time.monotonic() < deadline, c.logs()
+        time.sleep(0.2)
+
+
+def test_a_renewed_secret_swapped_in_by_kubelet_is_served_without_a_restart(images: dict[str, str], containers: list[Container], tmp_path: pathlib.Path) -> None:
+    """The certificate and tokens in a folder mounted read-only, swapped through `..data` as
+    kubelet swaps a renewed Secret: new connections get the new certificate, the open session's
+    stream goes on, the dropped token is refused, and garbage keeps the renewed one."""
+    secret = world_readable_dir("prac-secret")
+    certs = []
+    for k in range(2):
+        (tmp_path / str(k)).mkdir()
+        certs.append(tuple(p.read_bytes() for p in self_signed(tmp_path / str(k), days=30)))
+    old_token, new_token = "old-token-0123456789", "new-token-0123456789"
+    kubelet_publish(secret, {"tls.crt": certs[0][0], "tls.key": certs[0][1], "tokens": f"{old_token}\n{new_token}\n".encode()}, 1)
+    mounted = "/var/run/secrets/prac/tls"
+    c = Container(
+        images["bundles"],
+        "--tls-cert", f"{mounted}/tls.crt", "--tls-key", f"{mounted}/tls.key", "--auth-tokens", f"{mounted}/tokens",
+        volumes=(f"{secret}:{mounted}:ro",),
+    )
+    containers.append(c)
+    wait_health(c.health_address, "prac.v1.Prac", SERVING)
+    target = f"localhost:{c.grpc_port}"
+    try:
+        with Client(target, timeout=10, token=old_token, tls=TlsConfig(root_certificates=certs[0][0])) as client:
+            with client.session("pendulum", epsilon_coef=0.01) as session:
+                for t in range(5):
+                    assert session.step([1.0, 0.0, 0.1 * t], new_episode=t == 0).step == t
+                kubelet_publish(secret, {"tls.crt": certs[1][0], "tls.key": certs[1][1], "tokens": f"{new_token}\n".encode()}, 2)
+                wait_reloads(c, "certificate", "ok", 1)
+                wait_reloads(c, "tokens", "ok", 1)
+                # The open stream goes on over the connection made with the first certificate.
+                for t in range(5, 10):
+                    assert session.step([1.0, 0.0, 0.1 * t]).step == t
+                # A new call with the dropped token is refused.
+                with pytest.raises(Exception) as refused:
+                    client.policies()
+                assert "token" in str(refused.value).lower() or "unauthenticated" in str(refused.value).lower(), refused.value
+                # New connections get the renewed certificate only.
+                with Client(target, timeout=5, token=new_token, tls=TlsConfig(root_certificates=certs[1][0])) as renewed:
+                    assert renewed.policies()
+                with Client(target, timeout=5, token=new_token, tls=TlsConfig(root_certificates=certs[0][0])) as stale:
+                    with pytest.raises(Exception):
+                        stale.policies()
+                # Garbage: the renewed certificate goes on serving, and the session stepping.
+                kubelet_publish(secret, {"tls.crt": b"garbage", "tls.key": certs[1][1], "tokens": b""}, 3)
+                wait_reloads(c, "certificate", "error", 1)
+                wait_reloads(c, "tokens", "error", 1)
+                with Client(target, timeout=5, token=new_token, tls=TlsConfig(root_certificates=certs[1][0])) as renewed:
+                    assert renewed.policies()
+                for t in range(10, 12):
+                    assert session.step([1.0, 0.0, 0.1 * t]).step == t
+    finally:
+        shutil.rmtree(secret, ignore_errors=True)
+    assert c.running()
+    logs = c.logs()
+    assert "TLS certificate reloaded" in logs and "TLS certificate not reloaded; serving the previous one" in logs, logs
