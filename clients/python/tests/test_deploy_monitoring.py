@@ -10,6 +10,7 @@ import re
 import signal
 import subprocess
 import time
+import tomllib
 import urllib.request
 from typing import Iterator
 
@@ -124,7 +125,8 @@ def test_every_metric_the_dashboard_and_the_rules_name_is_on_a_live_server(metri
         assert metric in named(expressions), metric
 
 
-RUNBOOKS = "https://github.com/prac-rl/prac/blob/main/docs/operations.md#"
+# The runbooks live in the repository the image's source label names (Cargo.toml's repository).
+RUNBOOKS = tomllib.loads((REPO / "Cargo.toml").read_text())["package"]["repository"] + "/blob/main/docs/operations.md#"
 
 
 def anchors(markdown: str) -> dict[str, str]:
