@@ -108,23 +108,102 @@ def test_probes_ports_and_the_drain_agree_with_the_image_and_the_config() -> Non
     assert pod["securityContext"]["runAsUser"] == 65532 and pod["securityContext"]["runAsNonRoot"] is True
 
 
+def haproxy_sections(config: str) -> dict[str, list[str]]:
+    """haproxy.cfg's sections ("global", "backend prac", ...) and their lines, comments dropped."""
+    sections: dict[str, list[str]] = {}
+    current: list[str] = []
+    for line in config.splitlines():
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        if not line[0].isspace():
+            current = sections.setdefault(line.strip(), [])
+        else:
+            current.append(line.strip())
+    return sections
+
+
 def test_the_affinity_proxy_hashes_the_clients_header_over_the_headless_service() -> None:
     from prac_client import _channel
 
-    docs = render(K8S / "overlays" / "envoy")
-    configs = [d for d in docs if d["kind"] == "ConfigMap" and "envoy.yaml" in d["data"]]
+    docs = render(K8S / "overlays" / "haproxy")
+    configs = [d for d in docs if d["kind"] == "ConfigMap" and "haproxy.cfg" in d["data"]]
     assert len(configs) == 1
-    envoy = yaml.safe_load(configs[0]["data"]["envoy.yaml"])
-    route = envoy["static_resources"]["listeners"][0]["filter_chains"][0]["filters"][0]["typed_config"]["route_config"]
-    hashed = route["virtual_hosts"][0]["routes"][0]["route"]["hash_policy"][0]["header"]["header_name"]
-    assert hashed == _channel.AFFINITY_HEADER
-    cluster = envoy["static_resources"]["clusters"][0]
-    assert cluster["lb_policy"] == "RING_HASH"
-    address = cluster["load_assignment"]["endpoints"][0]["lb_endpoints"][0]["endpoint"]["address"]["socket_address"]
+    config = configs[0]["data"]["haproxy.cfg"]
+    assert config == (REPO / "deploy" / "haproxy" / "haproxy.cfg").read_text()
+    sections = haproxy_sections(config)
+    backend = sections["backend prac"]
+    # Each call hashed on the client's header, consistently: a lost replica moves only its share.
+    assert f"balance hdr({_channel.AFFINITY_HEADER})" in backend
+    assert "hash-type consistent" in backend
+    # Readiness from prac's /readyz on the metrics port; a replica marked down ends its streams.
     headless = find(docs, "Service", "prac-headless")
+    metrics_port = {p["name"]: p["containerPort"] for p in server_container(docs)["ports"]}["metrics"]
+    assert "option httpchk" in backend and "http-check expect status 200" in backend
+    assert any(re.fullmatch(r"http-check send meth GET uri /readyz\b.*", line) for line in backend), backend
+    defaults = next(line.split() for line in backend if line.startswith("default-server "))
+    assert defaults[defaults.index("port") + 1] == str(metrics_port)
+    assert defaults[defaults.index("on-marked-down") + 1] == "shutdown-sessions"
+    assert defaults[defaults.index("verify") + 1] == "required"
+    assert defaults[defaults.index("alpn") + 1] == "h2"
+    # The replicas from the headless Service's DNS, on its gRPC port, and the resolvers it names.
+    template = next(line for line in backend if line.startswith("server-template "))
+    host = f"prac-headless.${{POD_NAMESPACE}}.svc.${{CLUSTER_DOMAIN}}:{headless['spec']['ports'][0]['port']}"
+    assert template.split()[3] == f'"{host}"', template
     assert headless["spec"]["clusterIP"] == "None"
-    assert (address["address"], address["port_value"]) == ("prac-headless", headless["spec"]["ports"][0]["port"])
-    assert cluster["health_checks"][0]["grpc_health_check"]["service_name"] == "prac.v1.Prac"
+    resolvers = defaults[defaults.index("resolvers") + 1]
+    assert f"resolvers {resolvers}" in sections
+    # TLS in, with ALPN h2, from the Secret the proxy mounts.
+    bind = next(line.split() for line in sections["frontend grpc"] if line.startswith("bind "))
+    assert bind[bind.index("alpn") + 1] == "h2"
+    proxy = find(docs, "Deployment", "prac-affinity")["spec"]["template"]["spec"]
+    container = proxy["containers"][0]
+    mounts = {m["name"]: m["mountPath"] for m in container["volumeMounts"]}
+    volumes = {v["name"]: v for v in proxy["volumes"]}
+    assert volumes["tls"]["secret"]["secretName"] == "prac-tls"
+    assert bind[bind.index("crt") + 1] == f"{mounts['tls']}/tls.crt"
+    assert defaults[defaults.index("ca-file") + 1] == f"{mounts['tls']}/ca.crt"
+    assert volumes["config"]["configMap"]["name"] == configs[0]["metadata"]["name"]
+    assert mounts["config"] == "/etc/haproxy"
+    env = {e["name"]: e for e in container["env"]}
+    assert env["POD_NAMESPACE"]["valueFrom"]["fieldRef"]["fieldPath"] == "metadata.namespace"
+    # The probes reach what HAProxy serves on its probe port.
+    probes = {p["name"]: p["containerPort"] for p in container["ports"]}
+    assert any(line == f"bind :{probes['probes']}" for line in sections["frontend probes"])
+    for probe, path in (("readinessProbe", "/readyz"), ("livenessProbe", "/livez")):
+        assert container[probe]["httpGet"] == {"path": path, "port": "probes"}
+        assert any(f"{{ path {path} }}" in line for line in sections["frontend probes"]), path
+    # The drain (grace + hard-stop-after) fits the termination grace period.
+    seconds = {line.split()[0]: int(line.split()[1].removesuffix("s")) for line in sections["global"]
+               if line.split()[0] in ("grace", "hard-stop-after", "close-spread-time")}
+    assert seconds["close-spread-time"] < seconds["hard-stop-after"]
+    assert proxy["terminationGracePeriodSeconds"] > seconds["grace"] + seconds["hard-stop-after"]
+    containerfile = (REPO / "deploy" / "haproxy" / "Containerfile").read_text()
+    assert "\nSTOPSIGNAL SIGUSR1\n" in containerfile
+    assert container["securityContext"]["readOnlyRootFilesystem"] is True
+    assert proxy["securityContext"]["runAsUser"] == 65532 and proxy["securityContext"]["runAsNonRoot"] is True
+    # The replicas take gRPC from the proxy alone, and its /readyz checks on their metrics port.
+    policy = find(docs, "NetworkPolicy", "prac")
+    proxy_labels = find(docs, "Deployment", "prac-affinity")["spec"]["template"]["metadata"]["labels"]
+
+    def from_proxy(peer: dict[str, Any]) -> bool:
+        labels = peer.get("podSelector", {}).get("matchLabels", {})
+        return bool(labels) and "namespaceSelector" not in peer and labels.items() <= proxy_labels.items()
+
+    admitted: dict[str, list[dict[str, Any]]] = {}
+    for rule in policy["spec"]["ingress"]:
+        for port in rule["ports"]:
+            # A rule without `from` admits anyone.
+            admitted.setdefault(port["port"], []).extend(rule.get("from", [{}]))
+    assert admitted["grpc"] and all(from_proxy(peer) for peer in admitted["grpc"]), admitted["grpc"]
+    assert any(from_proxy(peer) for peer in admitted["metrics"]), admitted["metrics"]
+    own = find(docs, "NetworkPolicy", "prac-affinity")
+    egress_ports = {p["port"] for rule in own["spec"]["egress"] for p in rule["ports"]}
+    assert {"grpc", "metrics", 53} <= egress_ports
+    # Its clients and Prometheus come from the namespaces base/network.yaml sets for the replicas.
+    network = yaml.safe_load((K8S / "base" / "network.yaml").read_text())["data"]
+    namespaces = {p["port"]: rule["from"][0]["namespaceSelector"]["matchLabels"]["kubernetes.io/metadata.name"]
+                  for rule in own["spec"]["ingress"] for p in rule["ports"]}
+    assert namespaces == {"grpc": network["clientNamespace"], "probes": network["monitoringNamespace"]}
 
 
 def test_the_autoscaler_scales_on_the_metric_the_adapter_serves() -> None:
