@@ -321,3 +321,72 @@ async def play_aio(listen: str, kill_holder: Callable[[str], None]) -> tuple[lis
             if t == KILL_AT:
                 answered_at = [time.monotonic()]
         return results, session.resumes, session.id, answered_at
+
+
+def test_ring_hash_keeps_each_robot_on_one_server_and_moves_only_a_lost_servers_robots(
+    bundles: pathlib.Path, servers: list[Server]
+) -> None:
+    """No proxy: each client hashes its affinity key over three servers (gRPC's ring_hash with a
+    request hash header, gRFC A76). Sessions spread over the servers and stay where they opened;
+    a killed server's sessions resume on the others, and no other session moves."""
+    replicas = [Server(bundles, log=f"ring-{k}.log") for k in range(3)]
+    servers.extend(replicas)
+    target = "ipv4:" + ",".join(r.address for r in replicas)
+    robots = [f"robot-{k}" for k in range(12)]
+    clients = [Client(target, timeout=10, affinity=robot, balance="ring_hash", authority="prac") for robot in robots]
+    try:
+        sessions = [c.session("pendulum", **KEEP_ALL) for c in clients]
+        results: list[list[StepResult]] = [[] for _ in robots]
+        obs = observations()
+
+        def step_all(steps: range) -> None:
+            for t in steps:
+                for k, s in enumerate(sessions):
+                    results[k].append(s.step(obs[t], new_episode=t == 0))
+
+        step_all(range(KILL_AT))
+        before = [holder(replicas, s.id) for s in sessions]
+        spread = {r: before.count(r) for r in range(3)}
+        print(f"ring_hash: sessions per server {spread}")
+        assert sum(1 for n in spread.values() if n > 0) >= 2, spread
+        # Every call so far went to the server its session opened on: none had to resume.
+        assert all(s.resumes == 0 for s in sessions)
+        # Another channel (another process, say) hashes a key to the same server.
+        with Client(target, timeout=10, affinity=robots[0], balance="ring_hash", authority="prac") as other:
+            other._call(other._stub.GetPlan, pb.GetPlanRequest(session_id=sessions[0].id))
+        lost = max(spread, key=lambda r: spread[r])
+        replicas[lost].kill()
+        killed_at = time.monotonic()
+        answered = []
+        for k, s in enumerate(sessions):
+            results[k].append(s.step(obs[KILL_AT]))
+            answered.append(time.monotonic() - killed_at)
+        step_all(range(KILL_AT + 1, STEPS))
+        moved = [k for k, r in enumerate(before) if r == lost]
+        print(f"ring_hash: server {lost} killed with {len(moved)} of {len(robots)} sessions; "
+              f"their step {KILL_AT} answered within {max(answered[k] for k in moved):.3f} s of the kill")
+        for k, s in enumerate(sessions):
+            assert_contiguous(results[k])
+            now = holder([r for r in replicas if r.process.poll() is None], s.id)
+            if k in moved:
+                assert s.resumes == 1, (k, s.resumes)
+            else:
+                # Untouched: the same server, no resume.
+                assert s.resumes == 0, (k, s.resumes)
+                survivors = [r for r in range(3) if r != lost]
+                assert survivors[now] == before[k], (k, before[k], now)
+    finally:
+        for c in clients:
+            c.close()
+
+
+def test_ring_hash_asks_for_the_affinity_key_and_names_the_policy() -> None:
+    from prac_client import _channel
+
+    with pytest.raises(ValueError, match="affinity="):
+        Client("ipv4:127.0.0.1:1,127.0.0.1:2", balance="ring_hash")
+    with pytest.raises(ValueError, match="expected"):
+        Client("127.0.0.1:1", balance="hash")  # type: ignore[arg-type]
+    config = _channel.service_config("ring_hash")
+    assert config == {"loadBalancingConfig": [{"ring_hash_experimental": {"requestHashHeader": "x-prac-affinity"}}]}
+    assert os.environ[_channel.RING_HASH_SWITCH] == "true"

@@ -10,7 +10,7 @@ from typing import Iterator
 import grpc
 
 from prac_client import _core, errors
-from prac_client._channel import CHANNEL_OPTIONS, Tls
+from prac_client._channel import Balance, Tls, channel_options
 from prac_client._core import ArrayLike, Request, Response, T
 from prac_client._options import Growth
 from prac_client._proto.prac.v1 import prac_pb2 as pb
@@ -32,6 +32,12 @@ class Client(_core.ClientBase):
     survive losing their server: on a session the server no longer knows, or while no server
     answers, a step re-opens the session with the plan it holds and is sent again, for up to
     `patience` seconds.
+
+    Without a proxy, `balance="ring_hash"` (with `affinity`) hashes the affinity key over every
+    address the target resolves to (`dns:///prac-headless:50051`, or
+    `ipv4:10.0.0.1:50051,10.0.0.2:50051`), so the client's calls stay on one replica, and when
+    that one is lost only its clients move. `authority` sets the name the server's certificate is
+    checked against (and HTTP/2's :authority), which a target listing addresses needs.
     """
 
     def __init__(
@@ -43,12 +49,15 @@ class Client(_core.ClientBase):
         timeout: float | None = None,
         affinity: str | None = None,
         patience: float = 10.0,
+        balance: Balance | None = None,
+        authority: str | None = None,
     ) -> None:
         super().__init__(target, token=token, tls=tls, timeout=timeout, affinity=affinity, patience=patience)
+        options = channel_options(balance, authority, affinity)
         if self._credentials is None:
-            self._channel = grpc.insecure_channel(target, options=CHANNEL_OPTIONS)
+            self._channel = grpc.insecure_channel(target, options=options)
         else:
-            self._channel = grpc.secure_channel(target, self._credentials, options=CHANNEL_OPTIONS)
+            self._channel = grpc.secure_channel(target, self._credentials, options=options)
         self._stub = pb_grpc.PracStub(self._channel)
 
     def _call(self, rpc: grpc.UnaryUnaryMultiCallable[Request, Response], request: Request) -> Response:

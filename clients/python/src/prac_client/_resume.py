@@ -15,7 +15,7 @@ RESUMABLE: tuple[type[errors.PracError], ...] = (
     errors.ServerUnavailable,
 )
 
-# Metadata key a proxy hashes on to keep a client's calls on one replica (deploy/nginx).
+# Metadata key a proxy hashes on to keep a client's calls on one replica (deploy/haproxy, deploy/nginx).
 AFFINITY_HEADER = "x-prac-affinity"
 
 # Seconds between tries while no server answers.

@@ -14,7 +14,7 @@ import grpc
 import grpc.aio
 
 from prac_client import _core, errors
-from prac_client._channel import CHANNEL_OPTIONS, Tls
+from prac_client._channel import Balance, Tls, channel_options
 from prac_client._core import ArrayLike, Request, Response, T
 from prac_client._options import Growth
 from prac_client._proto.prac.v1 import prac_pb2 as pb
@@ -26,7 +26,7 @@ __all__ = ["Client", "Session"]
 
 class Client(_core.ClientBase):
     """The asyncio twin of `prac_client.Client`, with the same options (token, tls, timeout,
-    affinity, patience) and sessions that resume the same way."""
+    affinity, patience, balance, authority) and sessions that resume the same way."""
 
     def __init__(
         self,
@@ -37,12 +37,15 @@ class Client(_core.ClientBase):
         timeout: float | None = None,
         affinity: str | None = None,
         patience: float = 10.0,
+        balance: Balance | None = None,
+        authority: str | None = None,
     ) -> None:
         super().__init__(target, token=token, tls=tls, timeout=timeout, affinity=affinity, patience=patience)
+        options = channel_options(balance, authority, affinity)
         if self._credentials is None:
-            self._channel = grpc.aio.insecure_channel(target, options=CHANNEL_OPTIONS)
+            self._channel = grpc.aio.insecure_channel(target, options=options)
         else:
-            self._channel = grpc.aio.secure_channel(target, self._credentials, options=CHANNEL_OPTIONS)
+            self._channel = grpc.aio.secure_channel(target, self._credentials, options=options)
         self._stub = pb_grpc.PracStub(self._channel)
 
     async def _call(self, rpc: grpc.aio.UnaryUnaryMultiCallable[Request, Response], request: Request) -> Response:
