@@ -246,7 +246,7 @@ def test_a_container_killed_mid_episode_behind_the_affinity_proxy_loses_no_step(
     images: dict[str, str], containers: list[Container], tmp_path: pathlib.Path
 ) -> None:
     """Two containers behind deploy/nginx (a ring of two, hashed on x-prac-affinity, as
-    deploy/k8s/overlays/envoy hashes it): the one holding the robot's session is killed
+    deploy/haproxy hashes it): the one holding the robot's session is killed
     mid-episode, the client resumes on the other from the plan it holds, the steps go on."""
     from test_resume import KILL_AT, assert_contiguous, play_sync, start_nginx
 
