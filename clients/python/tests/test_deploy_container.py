@@ -99,8 +99,13 @@ def test_the_images_carry_their_source_revision_and_a_list_of_their_rust_crates(
     subprocess.run([podman, "create", "--name", name, images["bare"]], check=True, capture_output=True)
     try:
         text = subprocess.run([podman, "cp", f"{name}:/usr/share/doc/prac/sbom.cdx.json", "-"], check=True, capture_output=True).stdout
+        records = subprocess.run([podman, "cp", f"{name}:/var/lib/dpkg/status.d", "-"], check=True, capture_output=True).stdout
     finally:
         subprocess.run([podman, "rm", "-f", name], capture_output=True)
+    # The C libraries' Debian packages, as scanners read them.
+    with tarfile.open(fileobj=io.BytesIO(records)) as archive:
+        packages = {pathlib.PurePath(m.name).name for m in archive.getmembers() if m.isfile()}
+    assert {"libc6", "libgcc-s1"} <= packages, packages
     with tarfile.open(fileobj=io.BytesIO(text)) as archive:
         member = archive.extractfile("sbom.cdx.json")
         assert member is not None
