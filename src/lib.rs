@@ -33,6 +33,8 @@ pub mod client;
 pub mod domains;
 pub mod env_rpc;
 pub mod eval;
+#[cfg(feature = "onnx")]
+pub mod export;
 pub mod manifest;
 pub(crate) mod nn;
 pub mod plan;

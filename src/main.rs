@@ -25,6 +25,10 @@ enum Command {
     /// renamed into place); copies nothing if any is bad: the init container that moves bundles
     /// from an image into a server's volume (deploy/k8s).
     CopyBundles(cli::copy_bundles::CopyBundlesArgs),
+    /// Write a bundle's actor, critics and dynamics model as ONNX files (environment units,
+    /// normalisation inside) with prac.json, the contract of what they take and give.
+    #[cfg(feature = "onnx")]
+    ExportOnnx(cli::export_onnx::ExportOnnxArgs),
     /// Validate a bundle, print its manifest and run one forward pass.
     Inspect(cli::inspect::InspectArgs),
     /// A bundle's deterministic policy against random actions on its domain: return, falls,
@@ -77,6 +81,8 @@ fn main() -> ExitCode {
         Command::Serve(args) => cli::serve::run(*args),
         Command::Sleep(args) => args.run(),
         Command::CopyBundles(args) => args.run(),
+        #[cfg(feature = "onnx")]
+        Command::ExportOnnx(args) => args.run(),
         Command::Inspect(args) => args.run(),
         Command::Evaluate(args) => args.run(),
         Command::Domains(args) => args.run(),

@@ -1,6 +1,7 @@
-//! `prac copy-bundles FROM TO`: the init container of deploy/k8s's bundles-image overlay. It
-//! copies the bundles of an image into the server's bundle volume, checked first, so that a bad
-//! bundle stops the pod before it starts rather than being skipped by a serving replica.
+//! `prac copy-bundles FROM TO`: the init container of deploy/k8s's base (and the writer Job of its
+//! shared-volume overlay). It copies the bundles of an image into the server's bundle volume,
+//! checked first, so that a bad bundle stops the pod before it starts rather than being skipped
+//! by a serving replica.
 
 use std::path::{Path, PathBuf};
 

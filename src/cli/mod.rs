@@ -11,6 +11,8 @@ pub mod default_guard;
 pub mod domains;
 pub mod env_serve;
 pub mod evaluate;
+#[cfg(feature = "onnx")]
+pub mod export_onnx;
 #[cfg(feature = "train")]
 pub mod fit_model;
 pub mod inspect;

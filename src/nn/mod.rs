@@ -812,6 +812,13 @@ impl Mlp {
     pub(crate) fn norms(&self) -> &[LayerNorm] {
         &self.norms
     }
+    pub(crate) fn activation(&self) -> Activation {
+        self.activation
+    }
+    /// Whether the last layer is activated too.
+    pub(crate) fn activates_output(&self) -> bool {
+        self.activate_output
+    }
 
     pub(crate) fn input_dim(&self) -> usize {
         self.input_dim
