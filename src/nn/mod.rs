@@ -812,10 +812,12 @@ impl Mlp {
     pub(crate) fn norms(&self) -> &[LayerNorm] {
         &self.norms
     }
+    #[cfg(feature = "onnx")]
     pub(crate) fn activation(&self) -> Activation {
         self.activation
     }
     /// Whether the last layer is activated too.
+    #[cfg(feature = "onnx")]
     pub(crate) fn activates_output(&self) -> bool {
         self.activate_output
     }

@@ -83,7 +83,8 @@ struct Ended {
 fn transport_ending(status: &tonic::Status) -> Option<&'static str> {
     let mut source = std::error::Error::source(status);
     while let Some(error) = source {
-        let shown = format!("{error:?}");
+        // Debug names the kind (hyper's DispatchGone), Display says it in words.
+        let shown = format!("{error:?} {error}");
         if shown.contains("GoAway") {
             return Some("refused by GOAWAY");
         }

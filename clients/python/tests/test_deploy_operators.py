@@ -120,6 +120,9 @@ def test_cert_manager_writes_the_secret_the_deployment_mounts_from_a_ca_of_its_o
     assert 14 * 24 < hours(spec["renewBefore"]) < hours(spec["duration"])
     namespace = served[0]["metadata"]["namespace"]
     services = [s["metadata"]["name"] for s in yaml.safe_load_all((K8S / "base" / "service.yaml").read_text()) if s["metadata"]["name"] != "prac-metrics"]
+    # The affinity proxy serves the same certificate under its own Service.
+    proxy = find(render(K8S / "overlays" / "haproxy"), "Service", "prac-affinity")["metadata"]["name"]
+    services.append(proxy)
     assert sorted(spec["dnsNames"]) == sorted(services + [f"{s}.{namespace}.svc" for s in services])
     # The chain: a CA Issuer whose CA certificate a self-signed Issuer signs, so prac-tls holds ca.crt.
     issuer = find(docs, "Issuer", spec["issuerRef"]["name"])
