@@ -580,7 +580,18 @@ pub fn to_bytes_with_manifest(
     policy: &Policy,
     manifest: &str,
 ) -> Result<Vec<u8>, safetensors::SafeTensorError> {
-    let tensors = tensors(policy);
+    let metadata = HashMap::from([
+        ("format".to_string(), "prac-bundle".to_string()),
+        (MANIFEST_KEY.to_string(), manifest.to_string()),
+    ]);
+    serialize_f32(tensors(policy), metadata)
+}
+
+/// f32 tensors (name, shape, row-major values) as safetensors bytes, with `metadata`.
+pub(crate) fn serialize_f32(
+    tensors: Vec<(String, Vec<usize>, Vec<f32>)>,
+    metadata: HashMap<String, String>,
+) -> Result<Vec<u8>, safetensors::SafeTensorError> {
     let bytes: Vec<(String, Vec<usize>, Vec<u8>)> = tensors
         .into_iter()
         .map(|(name, shape, values)| {
@@ -597,10 +608,6 @@ pub fn to_bytes_with_manifest(
             )
         })
         .collect();
-    let metadata = HashMap::from([
-        ("format".to_string(), "prac-bundle".to_string()),
-        (MANIFEST_KEY.to_string(), manifest.to_string()),
-    ]);
     safetensors::serialize(views, Some(metadata))
 }
 

@@ -9,8 +9,11 @@
 //!
 //! Observations and actions are in the environment's units; the bundle's observation
 //! normalisation, the action scaling and the model's normalisation are inside the graphs.
+//! `reference.safetensors` holds states the policy visits and prac's outputs on them, for
+//! checking a runtime.
 
 mod graph;
+mod reference;
 
 use std::path::{Path, PathBuf};
 
@@ -24,6 +27,7 @@ use crate::policy::{LOG_STD_MAX, LOG_STD_MIN, Policy};
 use graph::{Attribute, Graph};
 
 pub use graph::OPSET;
+pub use reference::ROWS as REFERENCE_ROWS;
 
 /// The version of `prac.json`'s layout.
 pub const CONTRACT_VERSION: u32 = 1;
@@ -75,14 +79,19 @@ pub struct Contract {
     pub actor: ExportedFile,
     pub critics: Vec<ExportedFile>,
     pub model: Option<ExportedFile>,
+    /// `reference.safetensors`: `observation` and `action` rows, and each file's outputs on
+    /// them as prac computes them, named `STEM.OUTPUT` (`actor.action`, `critic_0.q`, ...).
+    pub reference: String,
 }
 
 /// Writes the ONNX files and `prac.json` of the bundle at `bundle` into the new folder `out`.
 /// The bundle is checked as the server loads it; nothing is written unless everything is: the
 /// files go into a sibling folder that is renamed to `out` at the end. `out` must not exist.
 pub fn export_onnx(bundle: &Path, out: &Path) -> anyhow::Result<Contract> {
-    let policy = crate::bundle::load(bundle)
-        .with_context(|| format!("cannot export {}", bundle.display()))?;
+    let policy = std::sync::Arc::new(
+        crate::bundle::load(bundle)
+            .with_context(|| format!("cannot export {}", bundle.display()))?,
+    );
     anyhow::ensure!(
         !out.exists(),
         "{} already exists; give a new folder to --out",
@@ -114,7 +123,7 @@ fn partial_path(out: &Path) -> anyhow::Result<PathBuf> {
     Ok(parent.map_or_else(|| PathBuf::from(&partial), |p| p.join(&partial)))
 }
 
-fn write_all(policy: &Policy, folder: &Path) -> anyhow::Result<Contract> {
+fn write_all(policy: &std::sync::Arc<Policy>, folder: &Path) -> anyhow::Result<Contract> {
     std::fs::create_dir_all(folder)
         .with_context(|| format!("cannot create {}", folder.display()))?;
     let write = |file: &str, graph: Graph, doc: &str, inputs: &[&str], outputs: &[&str]| {
@@ -158,6 +167,9 @@ fn write_all(policy: &Policy, folder: &Path) -> anyhow::Result<Contract> {
         )?),
         None => None,
     };
+    let reference = "reference.safetensors";
+    std::fs::write(folder.join(reference), reference::to_bytes(policy)?)
+        .with_context(|| format!("cannot write {reference}"))?;
     let m = &policy.manifest;
     let obs_bounds = m.obs_bounds.clone();
     let contract = Contract {
@@ -188,6 +200,7 @@ fn write_all(policy: &Policy, folder: &Path) -> anyhow::Result<Contract> {
         actor,
         critics,
         model,
+        reference: reference.into(),
     };
     let path = folder.join("prac.json");
     let text = serde_json::to_string_pretty(&contract)? + "\n";

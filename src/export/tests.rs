@@ -1,46 +1,6 @@
-use std::sync::Arc;
-
 use tract_onnx::prelude::*;
 
 use super::*;
-use crate::plan::Networks;
-use crate::policy::{Evaluator, ObsScale};
-
-/// States the bundle's own policy visits on its domain (deterministic, seed 0): what a robot
-/// would feed the exported files. Falls back to random states for a domain prac lacks.
-fn visited_states(policy: &Arc<Policy>, count: usize) -> Vec<f32> {
-    let od = policy.obs_dim();
-    let Some(mut env) = crate::domains::make(&policy.manifest.domain) else {
-        return (0..count * od)
-            .map(|i| ((i * 37 % 101) as f32 / 50.0) - 1.0)
-            .collect();
-    };
-    let mut evaluator = Evaluator::new(policy.clone());
-    let (mut obs, mut squashed, mut action) = (
-        vec![0.0; od],
-        vec![0.0; policy.act_dim()],
-        vec![0.0; policy.act_dim()],
-    );
-    env.reset(0, &mut obs).unwrap();
-    let mut states = Vec::with_capacity(count * od);
-    let noise = vec![0.0; policy.act_dim()];
-    for episode in 1.. {
-        while states.len() < count * od {
-            states.extend_from_slice(&obs);
-            evaluator.act(&obs, &noise, &mut squashed);
-            policy.unscale_action(&squashed, &mut action);
-            let t = env.step(&action, &mut obs).unwrap();
-            if t.terminated || t.truncated {
-                env.reset(episode, &mut obs).unwrap();
-                break;
-            }
-        }
-        if states.len() >= count * od {
-            break;
-        }
-    }
-    states
-}
 
 /// Runs an exported file on `inputs` ([rows, width] each) with tract; its outputs in order.
 fn run_tract(bytes: &[u8], inputs: &[(&[f32], usize)]) -> Vec<Vec<f32>> {
@@ -85,77 +45,50 @@ fn largest_difference(ours: &[f32], theirs: &[f32]) -> f32 {
         .fold(0.0, f32::max)
 }
 
-/// The parity of every exported network with prac's forward passes on `policy`'s states.
+/// The parity of every exported network, run by tract, with prac's forward passes on `policy`:
+/// the reference file the export writes holds prac's outputs on states its policy visits.
 fn check_parity(policy: Policy, label: &str) {
-    let policy = Arc::new(policy);
     let dir = tempfile::tempdir().unwrap();
     let bundle = dir.path().join("policy.safetensors");
     crate::bundle::save(&policy, &bundle).unwrap();
     let out = dir.path().join("onnx");
     let contract = export_onnx(&bundle, &out).unwrap();
-    let (od, ad) = (policy.obs_dim(), policy.act_dim());
-    let rows = 64;
-    let states = visited_states(&policy, rows);
-    let read = |file: &ExportedFile| std::fs::read(out.join(&file.path)).unwrap();
-
-    // Actor: the deterministic action in the bounds.
-    let mut evaluator = Evaluator::with_capacity(policy.clone(), rows);
-    let mut squashed = vec![0.0; rows * ad];
-    evaluator.act(&states, &vec![0.0; rows * ad], &mut squashed);
-    let mut ours = vec![0.0; rows * ad];
-    for (s, a) in squashed.chunks(ad).zip(ours.chunks_mut(ad)) {
-        policy.unscale_action(s, a);
-    }
-    let theirs = run_tract(&read(&contract.actor), &[(&states, od)]);
-    let mut report = vec![("actor".to_string(), largest_difference(&ours, &theirs[0]))];
-
-    // Critics, on the policy's actions and on others nearby, as Replan asks them. The server's
-    // critics see actions in [-1, 1]; the files take them in the bounds and map them back.
-    let mut actions = ours.clone();
-    for (i, a) in actions.iter_mut().enumerate() {
-        let k = i % ad;
-        let (lo, hi) = (
-            policy.manifest.action_low[k],
-            policy.manifest.action_high[k],
-        );
-        *a = (*a + 0.1 * (hi - lo) * ((i % 7) as f32 / 7.0 - 0.5)).clamp(lo, hi);
-    }
-    let mut back = vec![0.0; rows * ad];
-    for (a, s) in actions.chunks(ad).zip(back.chunks_mut(ad)) {
-        policy.scale_action(a, s);
-    }
-    let mut critic_input = Vec::new();
-    let normalized = match &policy.manifest.obs_normalization {
-        Some(n) => {
-            let mut out = Vec::new();
-            ObsScale::new(n).extend_normalized(&states, &mut out);
-            out
-        }
-        None => states.clone(),
+    let bytes = std::fs::read(out.join(&contract.reference)).unwrap();
+    let reference = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+    let tensor = |name: &str| -> (Vec<f32>, usize) {
+        let view = reference.tensor(name).unwrap();
+        let values = view
+            .data()
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        (values, view.shape()[1])
     };
-    for k in 0..rows {
-        critic_input.extend_from_slice(&normalized[k * od..(k + 1) * od]);
-        critic_input.extend_from_slice(&back[k * ad..(k + 1) * ad]);
-    }
-    for (c, file) in contract.critics.iter().enumerate() {
-        let critic = &policy.critics[c];
-        let ours = critic
-            .forward_rows(&critic_input, &mut critic.scratch())
-            .to_vec();
-        let theirs = run_tract(&read(file), &[(&states, od), (&actions, ad)]);
-        report.push((format!("critic_{c}"), largest_difference(&ours, &theirs[0])));
-    }
-
-    // Model: the next observation, inside the bounds.
-    if let Some(file) = &contract.model {
-        let mut ours = vec![0.0; rows * od];
-        evaluator.predict_next(&states, &back, &mut ours);
-        let theirs = run_tract(&read(file), &[(&states, od), (&actions, ad)]);
-        report.push(("model".into(), largest_difference(&ours, &theirs[0])));
-    }
-    for (network, difference) in &report {
-        println!("{label}: {network}: largest relative difference {difference:.2e}");
-        assert!(*difference < 1e-4, "{label} {network}: {difference}");
+    let (states, od) = tensor("observation");
+    let (actions, ad) = tensor("action");
+    assert_eq!((od, ad), (policy.obs_dim(), policy.act_dim()));
+    assert_eq!(states.len(), REFERENCE_ROWS * od);
+    let mut files = vec![&contract.actor];
+    files.extend(&contract.critics);
+    files.extend(&contract.model);
+    for file in files {
+        let bytes = std::fs::read(out.join(&file.path)).unwrap();
+        let inputs: Vec<(&[f32], usize)> = file
+            .inputs
+            .iter()
+            .map(|name| match name.as_str() {
+                "observation" => (states.as_slice(), od),
+                _ => (actions.as_slice(), ad),
+            })
+            .collect();
+        let outputs = run_tract(&bytes, &inputs);
+        let stem = file.path.trim_end_matches(".onnx");
+        for (name, theirs) in file.outputs.iter().zip(outputs) {
+            let (ours, _) = tensor(&format!("{stem}.{name}"));
+            let difference = largest_difference(&ours, &theirs);
+            println!("{label}: {stem}.{name}: largest relative difference {difference:.2e}");
+            assert!(difference < 1e-4, "{label} {stem}.{name}: {difference}");
+        }
     }
 }
 

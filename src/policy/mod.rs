@@ -246,6 +246,38 @@ impl Evaluator {
         }
     }
 
+    /// The actor's mean (before tanh) over `obs` and, for a Gaussian actor, its log-std clamped
+    /// as SB3 clamps it.
+    #[cfg(feature = "onnx")]
+    pub(crate) fn actor_heads(&mut self, obs: &[f32]) -> (Vec<f32>, Option<Vec<f32>>) {
+        let gaussian = self.run_actor(obs);
+        let log_std = gaussian.then(|| {
+            self.log_std
+                .iter()
+                .map(|v| v.clamp(LOG_STD_MIN, LOG_STD_MAX))
+                .collect()
+        });
+        (self.mu.clone(), log_std)
+    }
+
+    /// Each critic's values of (obs, actions), actions in [-1, 1]: one row of values per critic.
+    #[cfg(feature = "onnx")]
+    pub(crate) fn each_critic(&mut self, obs: &[f32], actions: &[f32]) -> Vec<Vec<f32>> {
+        let (od, ad) = (self.policy.obs_dim(), self.policy.act_dim());
+        let obs = normalize(&self.obs_scale, obs, &mut self.normalized);
+        self.critic_input.clear();
+        for (o, a) in obs.chunks_exact(od).zip(actions.chunks_exact(ad)) {
+            self.critic_input.extend_from_slice(o);
+            self.critic_input.extend_from_slice(a);
+        }
+        self.policy
+            .critics
+            .iter()
+            .zip(&mut self.critics)
+            .map(|(critic, scratch)| critic.forward_rows(&self.critic_input, scratch).to_vec())
+            .collect()
+    }
+
     /// Aggregated critic values of (obs, a) and (obs, b), and where asked the largest gap one
     /// critic sees, `max_c (Q_c(obs, a) - Q_c(obs, b))`.
     fn q_values(

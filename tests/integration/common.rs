@@ -84,17 +84,24 @@ impl Server {
 
     /// A TLS channel to a server whose certificate (PEM) names localhost.
     pub async fn tls_channel(&self, cert_pem: &str) -> Channel {
+        self.try_tls_channel(cert_pem).await.unwrap()
+    }
+
+    /// A TLS channel trusting `cert_pem` alone (a certificate for localhost), or why none
+    /// could be made.
+    pub async fn try_tls_channel(
+        &self,
+        cert_pem: &str,
+    ) -> Result<Channel, tonic::transport::Error> {
         let port = self.addr.rsplit(':').next().unwrap();
         let tls = tonic::transport::ClientTlsConfig::new()
             .ca_certificate(tonic::transport::Certificate::from_pem(cert_pem))
             .domain_name("localhost");
         Channel::from_shared(format!("https://localhost:{port}"))
             .unwrap()
-            .tls_config(tls)
-            .unwrap()
+            .tls_config(tls)?
             .connect()
             .await
-            .unwrap()
     }
 
     pub async fn client(&self) -> PracClient<Channel> {
@@ -262,17 +269,23 @@ pub fn rss_kib(pid: u32) -> u64 {
         .unwrap()
 }
 
-/// The answer to `GET /metrics` at `addr`, checked to be 200.
-pub fn scrape(addr: &str) -> String {
+/// The whole answer (status line, headers, body) to `GET path` at `addr` over HTTP/1.1.
+pub fn http_get(addr: &str, path: &str) -> String {
     use std::io::{Read, Write};
     let mut stream = std::net::TcpStream::connect(addr).unwrap();
     write!(
         stream,
-        "GET /metrics HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
+        "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
     )
     .unwrap();
     let mut text = String::new();
     stream.read_to_string(&mut text).unwrap();
+    text
+}
+
+/// The answer to `GET /metrics` at `addr`, checked to be 200.
+pub fn scrape(addr: &str) -> String {
+    let text = http_get(addr, "/metrics");
     assert!(text.starts_with("HTTP/1.1 200"), "{text}");
     text
 }

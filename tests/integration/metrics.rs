@@ -6,7 +6,7 @@ use crate::common;
 
 use std::time::Duration;
 
-use common::{OBS, Server, bundle_dir, metrics_address, sample, scrape};
+use common::{OBS, Server, bundle_dir, http_get, metrics_address, sample, scrape};
 use prac::proto;
 
 /// A serving server with metrics on a free port, and the metrics address.
@@ -116,7 +116,7 @@ async fn readiness_is_zero_while_no_bundle_is_loaded_and_one_once_one_is() {
     let server = Server::start(empty.path(), &["--metrics-listen", "127.0.0.1:0"]);
     let addr = metrics_address(&server);
     assert_eq!(sample(&scrape(&addr), "prac_serving"), 0.0);
-    assert!(readyz(&addr).starts_with("HTTP/1.1 503"));
+    assert!(http_get(&addr, "/readyz").starts_with("HTTP/1.1 503"));
     // A bundle arrives and SIGHUP loads it.
     let bundles = bundle_dir();
     for entry in std::fs::read_dir(bundles.path()).unwrap() {
@@ -126,25 +126,11 @@ async fn readiness_is_zero_while_no_bundle_is_loaded_and_one_once_one_is() {
     server.signal("HUP");
     server.wait_serving().await;
     assert_eq!(sample(&scrape(&addr), "prac_serving"), 1.0);
-    let ready = readyz(&addr);
+    let ready = http_get(&addr, "/readyz");
     assert!(
         ready.starts_with("HTTP/1.1 200") && ready.ends_with("SERVING\n"),
         "{ready}"
     );
-}
-
-/// `GET /readyz` on the metrics port (HTTP load balancers' readiness check): the whole answer.
-fn readyz(addr: &str) -> String {
-    use std::io::{Read, Write};
-    let mut stream = std::net::TcpStream::connect(addr).unwrap();
-    write!(
-        stream,
-        "GET /readyz HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
-    )
-    .unwrap();
-    let mut text = String::new();
-    let _ = stream.read_to_string(&mut text);
-    text
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -14,7 +14,6 @@ use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::Code;
 use tonic::metadata::MetadataValue;
-use tonic::transport::Channel;
 
 const OLD_TOKEN: &str = "old-7f3c9a0d5e21b864";
 const NEW_TOKEN: &str = "new-0a9e8d7c6b5a4f3e";
@@ -66,19 +65,6 @@ fn days_left(text: &str) -> f64 {
         .unwrap()
         .as_secs_f64();
     (expiry - now) / 86_400.0
-}
-
-/// A TLS channel to `server` trusting `cert_pem` alone, or why none could be made.
-async fn connect(server: &Server, cert_pem: &str) -> Result<Channel, tonic::transport::Error> {
-    let port = server.addr.rsplit(':').next().unwrap();
-    let tls = tonic::transport::ClientTlsConfig::new()
-        .ca_certificate(tonic::transport::Certificate::from_pem(cert_pem))
-        .domain_name("localhost");
-    Channel::from_shared(format!("https://localhost:{port}"))
-        .unwrap()
-        .tls_config(tls)?
-        .connect()
-        .await
 }
 
 fn with_token<T>(message: T, token: &str) -> tonic::Request<T> {
@@ -147,7 +133,7 @@ async fn a_swapped_secret_is_served_to_new_connections_while_open_streams_go_on(
 
     // A session stepping over a stream on a connection made with the first certificate.
     let mut old_client =
-        proto::prac_client::PracClient::new(connect(&server, &first_cert).await.unwrap());
+        proto::prac_client::PracClient::new(server.try_tls_channel(&first_cert).await.unwrap());
     let session = old_client
         .open_session(with_token(
             proto::OpenSessionRequest {
@@ -197,12 +183,12 @@ async fn a_swapped_secret_is_served_to_new_connections_while_open_streams_go_on(
 
     // New connections get the second certificate: one trusting only the first fails.
     let mut new_client =
-        proto::prac_client::PracClient::new(connect(&server, &second_cert).await.unwrap());
+        proto::prac_client::PracClient::new(server.try_tls_channel(&second_cert).await.unwrap());
     let listed = new_client
         .list_policies(with_token(proto::ListPoliciesRequest {}, NEW_TOKEN))
         .await;
     assert!(listed.is_ok(), "{listed:?}");
-    let refused = match connect(&server, &first_cert).await {
+    let refused = match server.try_tls_channel(&first_cert).await {
         Err(_) => true,
         Ok(channel) => proto::prac_client::PracClient::new(channel)
             .list_policies(with_token(proto::ListPoliciesRequest {}, NEW_TOKEN))
@@ -258,7 +244,7 @@ async fn a_swapped_secret_is_served_to_new_connections_while_open_streams_go_on(
     })
     .await;
     let mut after =
-        proto::prac_client::PracClient::new(connect(&server, &second_cert).await.unwrap());
+        proto::prac_client::PracClient::new(server.try_tls_channel(&second_cert).await.unwrap());
     assert!(
         after
             .list_policies(with_token(proto::ListPoliciesRequest {}, NEW_TOKEN))
