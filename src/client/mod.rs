@@ -14,7 +14,7 @@ use crate::proto::{self, PolicyInfo, prac_client::PracClient};
 pub mod local;
 mod resuming;
 
-pub use resuming::{AFFINITY_HEADER, ResumingSession};
+pub use resuming::{AFFINITY_HEADER, Answer, Fallback, ResumingSession};
 
 /// How long a client waits for a starting server to list its policies (it answers UNAVAILABLE
 /// until its bundles are loaded; the largest bundled one loads in well under a second).

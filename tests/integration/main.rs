@@ -9,6 +9,7 @@ mod bundles;
 mod cli;
 mod connections;
 mod deadlines;
+mod fallback;
 mod memory;
 mod metrics;
 mod reload;

@@ -159,7 +159,9 @@ async fn killing_a_replica_loses_no_step_for_a_resuming_client() {
             killed = Some(owner);
         }
         let obs: Vec<f32> = (0..OBS).map(|_| rng.random_range(-1.0..1.0)).collect();
-        let response = session.step(&obs, t == 0).await.unwrap();
+        let answer = session.step(&obs, t == 0).await.unwrap();
+        assert!(!answer.local, "no fallback: every answer is served");
+        let response = answer.response;
         // No step lost: the step counter and episode go on without a gap.
         assert_eq!((response.step, response.episode), (t, 0), "{response:?}");
         if let Some(previous) = responses.last() {
