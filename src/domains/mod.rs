@@ -233,5 +233,19 @@ pub fn make(name: &str) -> Option<Box<dyn Env>> {
     }
 }
 
+/// Seconds per step of the named domain, None for a domain prac lacks. Each domain is built
+/// once, on first asking.
+pub fn control_period(name: &str) -> Option<f64> {
+    use std::sync::OnceLock;
+    static PERIODS: OnceLock<Vec<(&'static str, f64)>> = OnceLock::new();
+    let periods = PERIODS.get_or_init(|| {
+        DOMAINS
+            .iter()
+            .filter_map(|&d| make(d).map(|env| (d, env.spec().control_period)))
+            .collect()
+    });
+    periods.iter().find(|(d, _)| *d == name).map(|&(_, p)| p)
+}
+
 #[cfg(test)]
 mod tests;

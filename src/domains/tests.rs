@@ -1150,3 +1150,13 @@ fn every_walker_observes_the_feet_contacts_one_step_late_as_pybullet() {
         e.body.feet_contact_for_test()
     });
 }
+
+#[test]
+fn control_periods_come_from_each_domains_spec() {
+    for &name in DOMAINS {
+        let period = control_period(name).unwrap();
+        assert_eq!(period, make(name).unwrap().spec().control_period, "{name}");
+        assert!(period > 0.0 && period < 0.1, "{name}: {period}");
+    }
+    assert_eq!(control_period("toy"), None);
+}

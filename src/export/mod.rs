@@ -191,7 +191,7 @@ fn write_all(policy: &std::sync::Arc<Policy>, folder: &Path) -> anyhow::Result<C
             high: m.action_high.iter().copied().map(Some).collect(),
         },
         action_kind: "continuous",
-        control_period: crate::domains::make(&m.domain).map(|env| env.spec().control_period),
+        control_period: crate::domains::control_period(&m.domain),
         gamma: m.gamma,
         q_aggregation: m.q_aggregation,
         value_scale: m.value_scale,

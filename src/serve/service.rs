@@ -146,6 +146,7 @@ pub(super) fn policy_info(name: &str, policy: &Policy) -> proto::PolicyInfo {
         default_guard: Some(super::session::guard_proto(
             m.default_guard.unwrap_or_default(),
         )),
+        control_period: crate::domains::control_period(&m.domain),
     }
 }
 

@@ -36,6 +36,8 @@ def test_policies(client: Client) -> None:
     assert info.gamma == pytest.approx(0.98)
     assert info.value_scale == prac_client.ValueScale(10.0, -10.0)
     assert info.content_hash.startswith("sha256:")
+    # The forecast's time base: Pendulum-v1's 0.05 s per step.
+    assert info.control_period == pytest.approx(0.05)
     assert client.policy("pendulum") == info
     with pytest.raises(prac_client.PolicyNotFound):
         client.policy("hopper")

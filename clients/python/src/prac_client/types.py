@@ -51,6 +51,8 @@ class PolicyInfo:
     format_version: int
     # The guard of a session that sets none (the bundle's default_guard).
     default_guard: PlanGuard
+    # Seconds per step on the bundle's domain; None where the server does not know the domain.
+    control_period: float | None = None
 
     @staticmethod
     def from_proto(p: pb.PolicyInfo) -> PolicyInfo:
@@ -68,6 +70,7 @@ class PolicyInfo:
             q_aggregation=p.q_aggregation,
             format_version=p.format_version,
             default_guard=PlanGuard.from_proto(p.default_guard),
+            control_period=p.control_period if p.HasField("control_period") else None,
         )
 
 
