@@ -11,8 +11,8 @@ use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 use common::{
-    Server, bundle_dir, grpc_frame, grpc_request, h2_connect, h2_unary, open_default_session,
-    rss_kib, tls_files,
+    Server, bundle_dir, grpc_frame, grpc_request, h2_connect, h2_unary, metrics_address,
+    open_default_session, rss_kib, tls_files,
 };
 use prac::proto;
 
@@ -220,15 +220,6 @@ async fn the_tls_port_closes_plaintext_and_slow_handshakes() {
         .unwrap();
 }
 
-fn metrics_addr(server: &Server) -> String {
-    server
-        .preamble
-        .iter()
-        .find_map(|l| l.strip_prefix("metrics on "))
-        .expect("the metrics address")
-        .to_string()
-}
-
 fn scrape_status(addr: &str, extra_header: &str) -> String {
     let mut stream = TcpStream::connect(addr).unwrap();
     stream
@@ -255,7 +246,7 @@ fn the_metrics_endpoint_sheds_slow_huge_and_numerous_clients() {
             "500ms",
         ],
     );
-    let addr = metrics_addr(&server);
+    let addr = metrics_address(&server);
     assert!(scrape_status(&addr, "").starts_with("HTTP/1.1 200"));
     // Silent and numerous: 100 connections that send nothing are all closed.
     let mut silent: Vec<TcpStream> = (0..100)
@@ -514,7 +505,7 @@ fn a_low_open_file_limit_is_raised_or_refused() {
 fn slow_clients_cannot_starve_the_metrics_endpoint() {
     let bundles = bundle_dir();
     let server = Server::start(bundles.path(), &["--metrics-listen", "127.0.0.1:0"]);
-    let addr = metrics_addr(&server);
+    let addr = metrics_address(&server);
     let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
     // 1,000 clients each sending one byte of a request every 100 ms, reconnecting when closed.
     let slow: Vec<_> = (0..4)
