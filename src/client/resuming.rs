@@ -81,6 +81,8 @@ pub struct ResumingSession {
     local: bool,
     /// Steps answered locally so far.
     pub local_steps: u64,
+    /// Local steps not yet reported to a server (sent with the next resume).
+    unreported_local_steps: u64,
     /// While local, how often to look for a server again, and how long to wait for one.
     pub probe_every: Duration,
     pub probe_timeout: Duration,
@@ -117,6 +119,7 @@ impl ResumingSession {
             fallback: None,
             local: false,
             local_steps: 0,
+            unreported_local_steps: 0,
             probe_every: Duration::from_secs(1),
             probe_timeout: Duration::from_millis(200),
             next_probe: tokio::time::Instant::now(),
@@ -177,17 +180,25 @@ impl ResumingSession {
     }
 
     async fn open_remote(&mut self, resume: Option<proto::Plan>) -> Result<String, Status> {
+        let local_steps = if resume.is_some() {
+            self.unreported_local_steps
+        } else {
+            0
+        };
         let request = self.request(proto::OpenSessionRequest {
             policy: self.policy.clone(),
             options: self.options,
             resume,
+            local_steps,
         })?;
-        Ok(self
+        let id = self
             .client
             .open_session(request)
             .await?
             .into_inner()
-            .session_id)
+            .session_id;
+        self.unreported_local_steps -= local_steps;
+        Ok(id)
     }
 
     /// Keeps the answer's plan: what a new server, or the fallback, resumes from.
@@ -298,6 +309,7 @@ impl ResumingSession {
         let response = session.response(&report);
         self.hold(&response);
         self.local_steps += 1;
+        self.unreported_local_steps += 1;
         Ok(Answer {
             response,
             local: true,

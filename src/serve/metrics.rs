@@ -30,6 +30,8 @@ pub(super) struct Metrics {
     step_latency: Histogram,
     open_sessions: Gauge,
     sessions_opened: Counter,
+    /// Steps clients answered on board while no server answered, as reported when they resumed.
+    local_steps: Family<Labels, Counter>,
     evictions: Counter,
     plan_breaks: Counter,
     forecast_length: Histogram,
@@ -85,6 +87,7 @@ impl Default for Metrics {
             step_latency: Histogram::new(exponential_buckets(1e-5, 2.0, 14)),
             open_sessions: Gauge::default(),
             sessions_opened: Counter::default(),
+            local_steps: Family::default(),
             evictions: Counter::default(),
             plan_breaks: Counter::default(),
             // 1 .. 256 actions.
@@ -125,6 +128,12 @@ impl Default for Metrics {
             "sessions_opened",
             "Sessions opened",
             m.sessions_opened.clone(),
+        );
+        r.register(
+            "local_steps",
+            "Steps clients answered on board (their fallback) while no server answered, by policy, \
+             as reported when the session resumed",
+            m.local_steps.clone(),
         );
         r.register(
             "session_evictions",
@@ -279,6 +288,14 @@ impl Metrics {
 
     pub(super) fn session_opened(&self) {
         self.sessions_opened.inc();
+    }
+
+    pub(super) fn local_steps(&self, policy: &str, steps: u64) {
+        if steps > 0 {
+            self.local_steps
+                .get_or_create(&vec![("policy", policy.to_string())])
+                .inc_by(steps);
+        }
     }
 
     pub(super) fn evicted(&self, count: usize) {

@@ -226,6 +226,10 @@ impl ServerState {
             .insert(session, steps_served, Some(memory))
             .map_err(Status::from)?;
         self.metrics.session_opened();
+        if request.resume.is_some() {
+            self.metrics
+                .local_steps(&policy.manifest.name, request.local_steps);
+        }
         tracing::debug!(session = %id, policy = %request.policy, "session opened");
         Ok(proto::OpenSessionResponse {
             session_id: id,

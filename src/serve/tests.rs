@@ -46,6 +46,7 @@ fn service(config: &ServeConfig) -> PracService {
 async fn open(service: &PracService, options: proto::SessionOptions) -> String {
     service
         .open_session(Request::new(proto::OpenSessionRequest {
+            local_steps: 0,
             policy: "toy".into(),
             options: Some(options),
             resume: None,
@@ -158,6 +159,7 @@ async fn a_resumed_session_goes_on_as_the_old_one_would_have() {
     };
     let resumed = service
         .open_session(Request::new(proto::OpenSessionRequest {
+            local_steps: 0,
             policy: "toy".into(),
             options: Some(options),
             resume: Some(held),
@@ -248,6 +250,7 @@ async fn serve_runs_from_a_bound_listener_until_its_shutdown_future_resolves() {
     assert_eq!(info.name, "toy");
     let id = client
         .open_session(proto::OpenSessionRequest {
+            local_steps: 0,
             policy: "toy".into(),
             options: None,
             resume: None,
@@ -293,6 +296,7 @@ async fn handlers_take_the_caller_the_intake_attached() {
     *state.registry.write().unwrap() = Some(Arc::new(loaded.registry));
     let service = PracService { state };
     let request = || proto::OpenSessionRequest {
+        local_steps: 0,
         policy: "toy".into(),
         options: None,
         resume: None,

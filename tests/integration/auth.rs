@@ -39,6 +39,7 @@ async fn sessions_belong_to_the_token_that_opened_them() {
         assert_eq!(status.code(), Code::Unauthenticated, "{status:?}");
     }
     let open = proto::OpenSessionRequest {
+        local_steps: 0,
         policy: "toy".into(),
         options: None,
         resume: None,

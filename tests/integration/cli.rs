@@ -81,6 +81,7 @@ async fn a_default_guards_epsilon_limit_holds_served_sessions_to_it() {
     server.wait_serving().await;
     let mut client = server.client().await;
     let open = |coef: f64, guard: Option<PlanGuard>| OpenSessionRequest {
+        local_steps: 0,
         policy: "toy".into(),
         options: Some(SessionOptions {
             tolerance: Some(Tolerance::EpsilonCoef(coef)),
@@ -162,6 +163,7 @@ async fn default_guard_sets_what_sessions_without_a_guard_get() {
     };
     assert_eq!(listed.policies[0].default_guard, Some(guard));
     let open = |guard: Option<PlanGuard>| OpenSessionRequest {
+        local_steps: 0,
         policy: "toy".into(),
         options: Some(SessionOptions {
             guard,

@@ -167,6 +167,7 @@ impl Drop for Server {
 pub async fn open_default_session(client: &mut PracClient<Channel>, policy: &str) -> String {
     client
         .open_session(prac::proto::OpenSessionRequest {
+            local_steps: 0,
             policy: policy.into(),
             options: None,
             resume: None,

@@ -27,7 +27,8 @@ fn options() -> proto::SessionOptions {
 fn serve_at(addr: &str, bundles: &std::path::Path) -> Server {
     let mut command = Command::new(env!("CARGO_BIN_EXE_prac"));
     command
-        .args(["serve", "--listen", addr, "--bundles"])
+        .args(["serve", "--listen", addr, "--metrics-listen", "127.0.0.1:0"])
+        .arg("--bundles")
         .arg(bundles);
     Server::spawn(command)
 }
@@ -57,6 +58,7 @@ async fn a_session_goes_on_locally_while_no_server_answers_and_resumes_when_one_
         .collect();
     let (kill_at, restart_at) = (20, 40);
     let mut answers: Vec<prac::client::Answer> = Vec::new();
+    let mut metrics = None;
     for (t, obs) in observations.iter().enumerate() {
         if t == kill_at {
             server.signal("KILL");
@@ -65,6 +67,7 @@ async fn a_session_goes_on_locally_while_no_server_answers_and_resumes_when_one_
         if t == restart_at {
             server = serve_at(&addr, bundles.path());
             server.wait_serving().await;
+            metrics = Some(common::metrics_address(&server));
         }
         let answer = session.step(obs, t == 0).await.unwrap();
         let r = &answer.response;
@@ -95,6 +98,12 @@ async fn a_session_goes_on_locally_while_no_server_answers_and_resumes_when_one_
     assert_eq!(local, (kill_at..back).collect::<Vec<_>>());
     assert_eq!(session.local_steps, local.len() as u64);
     assert!(!session.is_local() && session.resumes >= 1);
+    // The resume reported the local steps to the server that took the session back.
+    let text = common::scrape(&metrics.expect("restarted"));
+    assert_eq!(
+        common::sample(&text, "prac_local_steps_total{policy=\"toy\"}"),
+        local.len() as f64
+    );
     println!(
         "local steps {kill_at}..{back} ({} steps), served again {} steps after the restart",
         local.len(),
@@ -109,6 +118,7 @@ async fn a_session_goes_on_locally_while_no_server_answers_and_resumes_when_one_
     let before = &answers[kill_at - 1].response;
     let id = client
         .open_session(proto::OpenSessionRequest {
+            local_steps: 0,
             policy: "toy".into(),
             options: Some(options()),
             resume: Some(proto::Plan {

@@ -269,6 +269,7 @@ async fn open_session(
 ) -> String {
     client
         .open_session(proto::OpenSessionRequest {
+            local_steps: 0,
             policy: policy.into(),
             options: Some(proto::SessionOptions {
                 tolerance: Some(proto::session_options::Tolerance::Epsilon(1e9)),

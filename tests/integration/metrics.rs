@@ -71,6 +71,7 @@ async fn metrics_count_steps_sessions_and_errors() {
     for (policy, resume) in [("nope", None), ("toy", Some(proto::Plan::default()))] {
         client
             .open_session(proto::OpenSessionRequest {
+                local_steps: 0,
                 policy: policy.into(),
                 options: None,
                 resume,
@@ -212,6 +213,7 @@ async fn concurrent_prac_steps_of_a_trained_policy_are_replanned_by_the_batch_wo
         robots.push(tokio::spawn(async move {
             let id = client
                 .open_session(proto::OpenSessionRequest {
+                    local_steps: 0,
                     policy: "hopper".into(),
                     options: Some(proto::SessionOptions {
                         tolerance: Some(proto::session_options::Tolerance::EpsilonCoef(0.005)),

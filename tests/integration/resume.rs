@@ -50,6 +50,7 @@ async fn a_controller_resumes_its_commitment_on_a_new_server_after_sigkill() {
     let mut client = first.client().await;
     // A tolerance this wide keeps every plan: the commitment is what must survive.
     let open = proto::OpenSessionRequest {
+        local_steps: 0,
         policy: "toy".into(),
         options: Some(options(1e6)),
         resume: None,
@@ -175,6 +176,7 @@ async fn malformed_resumed_plans_are_refused_with_their_reason() {
     for (resume, reason) in cases {
         let status = client
             .open_session(proto::OpenSessionRequest {
+                local_steps: 0,
                 policy: "toy".into(),
                 options: Some(options(0.0)),
                 resume: Some(resume),
@@ -187,6 +189,7 @@ async fn malformed_resumed_plans_are_refused_with_their_reason() {
     // A well-formed one opens.
     let opened = client
         .open_session(proto::OpenSessionRequest {
+            local_steps: 0,
             policy: "toy".into(),
             options: Some(options(0.0)),
             resume: Some(plan(vec![good; 3])),
@@ -254,6 +257,7 @@ async fn a_resumed_session_answers_bit_for_bit_as_the_uninterrupted_one() {
         let mut start = vec![0.0; policy.obs_dim as usize];
         env.reset(11, &mut start).unwrap();
         let open = proto::OpenSessionRequest {
+            local_steps: 0,
             policy: policy.name.clone(),
             options: Some(proto::SessionOptions {
                 tolerance: Some(Tolerance::EpsilonCoef(0.01)),

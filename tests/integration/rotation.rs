@@ -137,6 +137,7 @@ async fn a_swapped_secret_is_served_to_new_connections_while_open_streams_go_on(
     let session = old_client
         .open_session(with_token(
             proto::OpenSessionRequest {
+                local_steps: 0,
                 policy: "toy".into(),
                 options: None,
                 resume: None,

@@ -33,6 +33,7 @@ async fn open(
 ) -> String {
     client
         .open_session(proto::OpenSessionRequest {
+            local_steps: 0,
             policy: "toy".into(),
             options: Some(options),
             resume: None,
@@ -146,6 +147,7 @@ async fn list_open_stream_unary_plan_and_watch_with(args: &[&str]) {
     // eps = 0.0002 * (10 - (-10)) = 0.004.
     let opened = client
         .open_session(proto::OpenSessionRequest {
+            local_steps: 0,
             policy: "toy".into(),
             options: Some(options(Some(Tolerance::EpsilonCoef(0.0002)), None, 12)),
             resume: None,
@@ -412,6 +414,7 @@ async fn every_error_status_with_a_clear_message() {
 
     // Unknown policy, bad options.
     let open_status = |policy: &str, o: proto::SessionOptions| proto::OpenSessionRequest {
+        local_steps: 0,
         policy: policy.to_string(),
         options: Some(o),
         resume: None,
@@ -554,6 +557,7 @@ async fn the_session_cap_answers_resource_exhausted() {
     }
     let status = client
         .open_session(proto::OpenSessionRequest {
+            local_steps: 0,
             policy: "toy".into(),
             options: None,
             resume: None,

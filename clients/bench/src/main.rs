@@ -289,6 +289,7 @@ async fn open(
 ) -> anyhow::Result<String> {
     let opened = client
         .open_session(proto::OpenSessionRequest {
+            local_steps: 0,
             policy: policy.to_string(),
             options: Some(session_options(args)),
             resume: None,
@@ -654,6 +655,7 @@ async fn run(args: Args) -> anyhow::Result<Report> {
         let mut client = connect(&addr).await?;
         let opened = client
             .open_session(proto::OpenSessionRequest {
+                local_steps: 0,
                 policy: policy.clone(),
                 options: Some(session_options(&args)),
                 resume: None,

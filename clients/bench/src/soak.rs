@@ -199,6 +199,7 @@ async fn churn(
         if rng.random_bool(bad) {
             let result = client
                 .open_session(proto::OpenSessionRequest {
+                    local_steps: 0,
                     policy: policy.clone(),
                     options: Some(proto::SessionOptions {
                         max_horizon: 1_000_000,
@@ -211,6 +212,7 @@ async fn churn(
             shared.refused("open with bad options", Code::InvalidArgument, result);
             let result = client
                 .open_session(proto::OpenSessionRequest {
+                    local_steps: 0,
                     policy: "no-such-policy".into(),
                     options: None,
                     resume: None,
@@ -221,6 +223,7 @@ async fn churn(
         }
         let id = match client
             .open_session(proto::OpenSessionRequest {
+                local_steps: 0,
                 policy: policy.clone(),
                 options: Some(options(&mut rng)),
                 resume: None,
@@ -367,6 +370,7 @@ async fn stall(
 ) {
     let id = match client
         .open_session(proto::OpenSessionRequest {
+            local_steps: 0,
             policy,
             options: None,
             resume: None,

@@ -23,7 +23,7 @@ import asyncio
 import json
 import pathlib
 import secrets
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, AsyncIterator
 
 import grpc
@@ -33,13 +33,12 @@ from safetensors.numpy import load_file
 
 from prac_client._proto.prac.v1 import prac_pb2 as pb
 from prac_client._proto.prac.v1 import prac_pb2_grpc as pb_grpc
+from prac_client.replan import DEFAULT_MAX_HORIZON, PlanState, replan_batch, response
 
 F32 = np.float32
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
-DEFAULT_MAX_HORIZON = 32
 # Actions and means are clamped here before atanh, so actions at the bounds compare finitely.
 SQUASHED_LIMIT = F32(1.0) - np.finfo(F32).eps
-CHUNK = 8  # old actions checked per round: one batched actor and critic pass for all of them
 
 
 def _activation(name: str) -> Any:
@@ -159,162 +158,17 @@ class Policy:
             predicted = np.clip(predicted, self.obs_limits[0], self.obs_limits[1])
         return predicted
 
-    def unscale(self, a: np.ndarray) -> np.ndarray:
+    def to_environment(self, a: np.ndarray) -> np.ndarray:
         return self.low + 0.5 * (a + 1.0) * (self.high - self.low)
 
+    def from_environment(self, a: np.ndarray) -> np.ndarray:
+        return np.clip(2.0 * (a - self.low) / (self.high - self.low) - 1.0, -1.0, 1.0).astype(F32)
 
-@dataclass
-class Session:
+
+@dataclass(kw_only=True)
+class Session(PlanState):
     policy_name: str
     policy: Policy
-    epsilon: float
-    grow: int | None
-    fixed: int | None
-    max_horizon: int
-    # The guard (all off: the paper's test).
-    every_critic: bool = False
-    support_limit: float = 0.0
-    # The committed plan: squashed actions [n, act], predicted observations [n, obs], decided_at.
-    actions: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), F32))
-    predicted: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), F32))
-    decided: list[int] = field(default_factory=list)
-    step: int | None = None
-    episode: int = 0
-    served: int = 0
-
-
-def replan_batch(policy: Policy, jobs: list[tuple[Session, np.ndarray, bool]]) -> list[tuple[int, int | None]]:
-    """Algorithm 2 for several sessions of one policy at once. Each job is (session, observed
-    state, fresh); returns (kept, broke_at) per job and leaves each new plan on its session."""
-    b = len(jobs)
-    od, ad = policy.obs_dim, policy.act_dim
-    state = np.stack([s for _, s, _ in jobs]).astype(F32)
-    olds = []
-    for session, _, fresh in jobs:
-        if fresh or len(session.decided) == 0:
-            olds.append((np.zeros((0, ad), F32), []))
-        else:
-            olds.append((session.actions[1:], session.decided[1:]))
-    limit = [min(len(o[1]), jobs[k][0].max_horizon) for k, o in enumerate(olds)]
-    kept = [0] * b
-    broke: list[int | None] = [None] * b
-    new_actions: list[list[np.ndarray]] = [[] for _ in range(b)]
-    new_states: list[list[np.ndarray]] = [[] for _ in range(b)]
-    new_decided: list[list[int]] = [[] for _ in range(b)]
-    pi_at_break: list[np.ndarray | None] = [None] * b
-    checking = [k for k in range(b) if limit[k] > 0]
-    # Check the old plans CHUNK actions at a time: roll the model over the chunk, then one actor
-    # and one critic pass over every state of every chunk, and keep up to the first failure.
-    while checking:
-        rows, owner, depth = [], [], []
-        starts = {k: state[k].copy() for k in checking}
-        s = np.stack([state[k] for k in checking])
-        cur = {k: i for i, k in enumerate(checking)}
-        rolled: dict[int, list[np.ndarray]] = {k: [] for k in checking}
-        for c in range(CHUNK):
-            alive = [k for k in checking if kept[k] + c < limit[k]]
-            if not alive:
-                break
-            idx = [cur[k] for k in alive]
-            a = np.stack([olds[k][0][kept[k] + c] for k in alive])
-            for k, i in zip(alive, idx):
-                rows.append(s[i].copy())
-                owner.append(k)
-                depth.append(c)
-            nxt = policy.predict(s[idx], a)
-            s[idx] = nxt
-            for k, r in zip(alive, nxt):
-                rolled[k].append(r)
-        states = np.stack(rows)
-        old_a = np.stack([olds[k][0][kept[k] + c] for k, c in zip(owner, depth)])
-        pi = policy.act(states)
-        each = policy.q_each(np.concatenate([states, states]), np.concatenate([pi, old_a]))
-        both = policy.aggregate(each)
-        q_pi, q_a = both[: len(rows)], both[len(rows) :]
-        # The guard: the largest one-critic gap, and the distance from the policy's Gaussian.
-        gap = np.maximum.reduce([q[: len(rows)] - q[len(rows) :] for q in each])
-        support = any(jobs[k][0].support_limit > 0 for k in checking)
-        distance = policy.distance(states, old_a) if support else None
-        first_fail: dict[int, int] = {}
-        for r, (k, c) in enumerate(zip(owner, depth)):
-            session = jobs[k][0]
-            eps = F32(session.epsilon)
-            breaks = q_a[r] + eps < q_pi[r] or (session.every_critic and gap[r] > eps)
-            if distance is not None and session.support_limit > 0:
-                breaks = breaks or bool(distance[r] > F32(session.support_limit))
-            if k not in first_fail and breaks:
-                first_fail[k] = c
-                pi_at_break[k] = pi[r]
-        still = []
-        for k in checking:
-            n_checked = len(rolled[k])
-            good = first_fail.get(k, n_checked)
-            for c in range(good):
-                new_actions[k].append(olds[k][0][kept[k] + c])
-                new_states[k].append(rolled[k][c])
-                new_decided[k].append(olds[k][1][kept[k] + c])
-            state[k] = rolled[k][good - 1] if good > 0 else starts[k]
-            kept[k] += good
-            if k in first_fail:
-                broke[k] = kept[k]
-            elif kept[k] < limit[k]:
-                still.append(k)
-        checking = still
-    # Extend each plan with the policy, all sessions in lockstep.
-    wanted = []
-    for k, (session, _, _) in enumerate(jobs):
-        w = session.grow if session.grow is not None else max((session.fixed or 0) - kept[k], 0)
-        wanted.append(min(w, session.max_horizon - kept[k]))
-    s = state.copy()
-    for m in range(max(wanted, default=0)):
-        alive = [k for k in range(b) if m < wanted[k]]
-        need = [k for k in alive if not (m == 0 and pi_at_break[k] is not None)]
-        a = np.zeros((len(alive), ad), F32)
-        if need:
-            computed = policy.act(s[need])
-            for k, row in zip(need, computed):
-                a[alive.index(k)] = row
-        for k in alive:
-            if m == 0 and pi_at_break[k] is not None:
-                a[alive.index(k)] = pi_at_break[k]
-        nxt = policy.predict(s[alive], a)
-        s[alive] = nxt
-        for i, k in enumerate(alive):
-            new_actions[k].append(a[i])
-            new_states[k].append(nxt[i])
-            new_decided[k].append(-1)  # decided now: the step, filled in below
-    out = []
-    for k, (session, _, fresh) in enumerate(jobs):
-        t = 0 if fresh or session.step is None else session.step + 1
-        if fresh and session.step is not None:
-            session.episode += 1
-        session.step = t
-        session.actions = np.stack(new_actions[k]).astype(F32) if new_actions[k] else np.zeros((0, ad), F32)
-        session.predicted = np.stack(new_states[k]).astype(F32) if new_states[k] else np.zeros((0, od), F32)
-        session.decided = [t if d < 0 else d for d in new_decided[k]]
-        session.served += 1
-        out.append((kept[k], broke[k]))
-    return out
-
-
-def response(session: Session, kept: int, broke_at: int | None) -> pb.StepResponse:
-    p = session.policy
-    actions = p.unscale(session.actions)
-    forecast = [
-        pb.PlannedAction(action=actions[j].tolist(), predicted_observation=session.predicted[j].tolist(), decided_at=session.decided[j])
-        for j in range(len(session.decided))
-    ]
-    r = pb.StepResponse(
-        action=actions[0].tolist(),
-        forecast=forecast,
-        kept=kept,
-        f_t=session.step + 1 - session.decided[0],  # type: ignore[operator]
-        step=session.step,
-        episode=session.episode,
-    )
-    if broke_at is not None:
-        r.broke_at = broke_at
-    return r
 
 
 class Batcher:
@@ -353,7 +207,7 @@ class Batcher:
                     continue
                 for (sess, _, _, done), (kept, broke_at) in zip(items, outcomes):
                     if not done.done():
-                        done.set_result(response(sess, kept, broke_at))
+                        done.set_result(response(sess, sess.policy, kept, broke_at))
             for item in later:
                 self.queue.put_nowait(item)
 
@@ -417,7 +271,16 @@ class Service(pb_grpc.PracServicer):  # type: ignore[misc]
             if not p.value_scale or p.value_scale["v_pi"] <= p.value_scale["v_rand"]:
                 await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "guard.max_epsilon_coef needs a value scale")
             eps = min(eps, max_coef * (p.value_scale["v_pi"] - p.value_scale["v_rand"]))
-        session = Session(request.policy, p, float(F32(eps)), grow, fixed, horizon, every_critic, float(F32(support_limit)))
+        session = Session(
+            policy_name=request.policy,
+            policy=p,
+            epsilon=float(F32(eps)),
+            grow=grow,
+            fixed=fixed,
+            max_horizon=horizon,
+            every_critic=every_critic,
+            support_limit=float(F32(support_limit)),
+        )
         sid = secrets.token_hex(16)
         self.sessions[sid] = session
         resolved = pb.ResolvedOptions(
@@ -457,7 +320,7 @@ class Service(pb_grpc.PracServicer):  # type: ignore[misc]
         session = self.sessions.get(request.session_id)
         if session is None:
             await context.abort(grpc.StatusCode.NOT_FOUND, f"unknown session '{request.session_id}'")
-        actions = session.policy.unscale(session.actions)
+        actions = session.policy.to_environment(session.actions)
         return pb.Plan(
             session_id=request.session_id,
             episode=session.episode,

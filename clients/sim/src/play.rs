@@ -172,6 +172,7 @@ pub async fn play_episode(
     };
     let opened = client
         .open_session(proto::OpenSessionRequest {
+            local_steps: 0,
             policy: info.name.clone(),
             options: Some(options),
             resume: None,

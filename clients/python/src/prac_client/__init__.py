@@ -12,6 +12,7 @@ from prac_client._channel import TlsConfig
 from prac_client._client import Client, Session
 from prac_client.errors import (
     DeadlineExceeded,
+    FallbackFailed,
     InvalidObservation,
     InvalidOptions,
     MessageTooLarge,
@@ -29,6 +30,7 @@ from prac_client.types import Plan, PlanGuard, PolicyInfo, SessionOptions, StepR
 __all__ = [
     "Client",
     "DeadlineExceeded",
+    "FallbackFailed",
     "InvalidObservation",
     "InvalidOptions",
     "MessageTooLarge",

@@ -13,6 +13,7 @@ from prac_client import _core, errors
 from prac_client._channel import Balance, Tls, channel_options
 from prac_client._core import ArrayLike, Request, Response, T
 from prac_client._options import Growth
+from prac_client.onboard import Fallback, PathLike
 from prac_client._proto.prac.v1 import prac_pb2 as pb
 from prac_client._proto.prac.v1 import prac_pb2_grpc as pb_grpc
 from prac_client.types import Plan, PolicyInfo, StepResult
@@ -60,9 +61,11 @@ class Client(_core.ClientBase):
             self._channel = grpc.secure_channel(target, self._credentials, options=options)
         self._stub = pb_grpc.PracStub(self._channel)
 
-    def _call(self, rpc: grpc.UnaryUnaryMultiCallable[Request, Response], request: Request) -> Response:
+    def _call(
+        self, rpc: grpc.UnaryUnaryMultiCallable[Request, Response], request: Request, timeout: float | None = None
+    ) -> Response:
         try:
-            return rpc(request, timeout=self.timeout, metadata=self._metadata)
+            return rpc(request, timeout=timeout or self.timeout, metadata=self._metadata)
         except grpc.RpcError as e:
             raise _core.rpc_error(e, request) from None
 
@@ -85,9 +88,15 @@ class Client(_core.ClientBase):
         every_critic: bool = False,
         support_limit: float | None = None,
         max_epsilon_coef: float | None = None,
+        fallback: Fallback | PathLike | None = None,
     ) -> Session:
         """Opens a session (close it, or use it as a context manager). A seed means sampled
-        actions unless sampled=False."""
+        actions unless sampled=False.
+
+        `fallback` (a `prac export-onnx` folder, or a `prac_client.onboard.Fallback`) goes on
+        on board when no server answers past the patience: the session's steps are replanned
+        locally from the plan it holds (`StepResult.local`) until a server takes it back. It
+        must be the server's bundle (checked now: FallbackFailed)."""
         request = _core.open_request(
             policy,
             epsilon=epsilon,
@@ -100,7 +109,13 @@ class Client(_core.ClientBase):
             support_limit=support_limit,
             max_epsilon_coef=max_epsilon_coef,
         )
-        return Session(self, self._call(self._stub.OpenSession, request), policy)
+        opened = self._call(self._stub.OpenSession, request)
+        try:
+            checked = _core.fallback_for(fallback, opened)
+        except errors.PracError:
+            self._call(self._stub.CloseSession, pb.CloseSessionRequest(session_id=opened.session_id))
+            raise
+        return Session(self, opened, policy, checked)
 
     def close(self) -> None:
         self._channel.close()
@@ -149,8 +164,8 @@ class Session(_core.SessionBase):
     """A session on one policy, holding the server-side plan. Steps go over one bidirectional
     stream, opened on the first step and again after an error."""
 
-    def __init__(self, client: Client, opened: pb.OpenSessionResponse, policy: str) -> None:
-        super().__init__(opened, policy)
+    def __init__(self, client: Client, opened: pb.OpenSessionResponse, policy: str, fallback: Fallback | None = None) -> None:
+        super().__init__(opened, policy, fallback)
         self._client = client
         self._stream: _StepStream | None = None
 
@@ -175,8 +190,8 @@ class Session(_core.SessionBase):
                 return self._send(request)
             case _core.GetPlan(request):
                 return self._client._call(self._client._stub.GetPlan, request)
-            case _core.OpenSession(request):
-                return self._client._call(self._client._stub.OpenSession, request)
+            case _core.OpenSession(request, timeout):
+                return self._client._call(self._client._stub.OpenSession, request, timeout)
             case _core.Pause(seconds):
                 time.sleep(seconds)
                 return None

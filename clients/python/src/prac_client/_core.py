@@ -18,6 +18,7 @@ import numpy.typing as npt
 from google.protobuf.message import Message
 
 from prac_client import _resume, errors
+from prac_client.onboard import Fallback, PathLike
 from prac_client._channel import Tls, credentials, metadata
 from prac_client._options import Growth, session_options
 from prac_client._proto.prac.v1 import prac_pb2 as pb
@@ -78,6 +79,23 @@ def open_request(
     return pb.OpenSessionRequest(policy=policy, options=options)
 
 
+def fallback_for(fallback: Fallback | PathLike | None, opened: pb.OpenSessionResponse) -> Fallback | None:
+    """The session's fallback, checked against the session the server opened: the same bundle
+    (content hash) and a deterministic session. Raises FallbackFailed."""
+    if fallback is None:
+        return None
+    if not isinstance(fallback, Fallback):
+        fallback = Fallback(fallback)
+    if fallback.content_hash != opened.policy.content_hash:
+        raise errors.FallbackFailed(
+            f"the fallback ({fallback.content_hash}) is not the server's '{opened.policy.name}' "
+            f"({opened.policy.content_hash}); export the bundle the server serves"
+        )
+    if opened.options.sampled:
+        raise errors.FallbackFailed("the on-board fallback replans deterministic sessions only; open without sampled")
+    return fallback
+
+
 class ClientBase:
     """A client's settings; the sync and asyncio clients add the channel and the calls."""
 
@@ -114,9 +132,11 @@ class GetPlan:
 
 @dataclass(frozen=True)
 class OpenSession:
-    """Call OpenSession; the reply is the pb.OpenSessionResponse."""
+    """Call OpenSession (within `timeout` seconds, else the client's); the reply is the
+    pb.OpenSessionResponse."""
 
     request: pb.OpenSessionRequest
+    timeout: float | None = None
 
 
 @dataclass(frozen=True)
@@ -141,37 +161,68 @@ def _reply(reply: Reply, kind: type[Response]) -> Response:
 class SessionBase:
     """A session's state and logic; the sync and asyncio sessions make its calls."""
 
-    def __init__(self, opened: pb.OpenSessionResponse, policy: str) -> None:
+    def __init__(self, opened: pb.OpenSessionResponse, policy: str, fallback: Fallback | None = None) -> None:
         self.id: str = opened.session_id
         self.policy = PolicyInfo.from_proto(opened.policy)
         self.options = SessionOptions.from_proto(opened.options)
         self.closed = False
         self._new_episode = False
         self._policy_name = policy
+        self._resolved = opened.options
         self._options_in_force = _resume.options_in_force(opened.options)
         # The plan the last answer committed: what a new server resumes from.
         self._held: pb.Plan | None = None
         self.resumes = 0
         """Times the session was re-opened with its plan on a server that did not know it."""
+        self._fallback = fallback
+        self.local_steps = 0
+        """Steps answered on board by the fallback."""
+        self._unreported_local_steps = 0
+        self.probe_every = _resume.PROBE_EVERY
+        """While local, seconds between tries to resume on a server."""
+        self.probe_timeout = _resume.PROBE_TIMEOUT
+        """How long such a try waits for a server."""
+        self._next_probe = 0.0
+        # With a fallback, a call that times out (a link that stopped forwarding) is a lost
+        # server too: the session goes local rather than failing the step.
+        self._lost: tuple[type[errors.PracError], ...] = _resume.RESUMABLE + (
+            (errors.DeadlineExceeded,) if fallback is not None else ()
+        )
+
+    @property
+    def local(self) -> bool:
+        """Whether the session is going on on board now (no server answered past the patience)."""
+        return self._fallback is not None and self._fallback.active
 
     def _stepping(self, observation: ArrayLike, new_episode: bool, patience: float) -> Flow[StepResult]:
         """One step, resumed (up to `patience` seconds) where the server lost the session or none
         answers: on a server without the session, it is re-opened with the plan it holds and the
-        step sent again; a step the server applied although its answer was lost is not sent again."""
+        step sent again; a step the server applied although its answer was lost is not sent again.
+        With a fallback, past the patience the step is replanned on board, and so are the next
+        until a server takes the session back (tried every `probe_every` seconds)."""
         if self.closed:
             raise errors.SessionNotFound(
                 f"session '{self.id}' was closed by this client; open a new one with client.session(...)"
             )
         observed = observation_list(observation)
         new_episode = new_episode or self._new_episode
+        if self.local and time.monotonic() >= self._next_probe:
+            self._next_probe = time.monotonic() + self.probe_every
+            yield from self._probing()
+        if self.local:
+            return self._step_on_board(observed, new_episode)
         give_up = time.monotonic() + patience
         while True:
             request = pb.StepRequest(session_id=self.id, observation=observed, new_episode=new_episode)
             try:
                 response = _reply((yield SendStep(request)), pb.StepResponse)
-            except _resume.RESUMABLE:
+            except self._lost:
                 if time.monotonic() > give_up:
-                    raise
+                    if self._fallback is None:
+                        raise
+                    self._fallback.start(self._resolved, self._held)
+                    self._next_probe = time.monotonic() + self.probe_every
+                    return self._step_on_board(observed, new_episode)
                 recovered = yield from self._recovering()
                 if recovered is None:
                     continue
@@ -179,6 +230,44 @@ class SessionBase:
             self._held = _resume.held_plan(response)
             self._new_episode = False
             return StepResult.from_proto(response, self.policy.act_dim, self.policy.obs_dim)
+
+    def _step_on_board(self, observed: list[float], new_episode: bool) -> StepResult:
+        """One step replanned by the fallback. If the fallback fails, the error carries the held
+        plan's action for this step (and the session holds the rest of that plan)."""
+        assert self._fallback is not None
+        try:
+            response = self._fallback.step(observed, new_episode)
+        except errors.FallbackFailed as e:
+            following = _resume.following(self._held)
+            if following is not None and not new_episode:
+                self._held = _resume.held_plan(following)
+                e.held = StepResult.from_proto(following, self.policy.act_dim, self.policy.obs_dim, local=True)
+                self.local_steps += 1
+                self._unreported_local_steps += 1
+            raise
+        self._held = _resume.held_plan(response)
+        self._new_episode = False
+        self.local_steps += 1
+        self._unreported_local_steps += 1
+        return StepResult.from_proto(response, self.policy.act_dim, self.policy.obs_dim, local=True)
+
+    def _probing(self) -> Flow[None]:
+        """While local: re-opens the session on a server with the local plan, if one answers
+        within `probe_timeout`; the next steps are served there."""
+        assert self._fallback is not None
+        request = pb.OpenSessionRequest(
+            policy=self._policy_name, options=self._options_in_force, local_steps=self._unreported_local_steps
+        )
+        if self._held is not None:
+            request.resume.CopyFrom(self._held)
+        try:
+            opened = _reply((yield OpenSession(request, self.probe_timeout)), pb.OpenSessionResponse)
+        except errors.PracError:
+            return
+        self.id = opened.session_id
+        self.resumes += 1
+        self._unreported_local_steps = 0
+        self._fallback.stop()
 
     def _recovering(self) -> Flow[pb.StepResponse | None]:
         """After a failed step: the step's answer if the server applied it after all (its plan
@@ -188,7 +277,7 @@ class SessionBase:
         except (errors.SessionNotFound, errors.SessionExpired):
             yield from self._reopening()
             return None
-        except errors.ServerUnavailable:
+        except self._lost:
             yield Pause(_resume.RETRY_PAUSE)
             return None
         if _resume.applied(self._held, now):
@@ -201,7 +290,7 @@ class SessionBase:
             request.resume.CopyFrom(self._held)
         try:
             opened = _reply((yield OpenSession(request)), pb.OpenSessionResponse)
-        except errors.ServerUnavailable:
+        except self._lost:
             yield Pause(_resume.RETRY_PAUSE)
             return
         self.id = opened.session_id

@@ -21,6 +21,11 @@ AFFINITY_HEADER = "x-prac-affinity"
 # Seconds between tries while no server answers.
 RETRY_PAUSE = 0.1
 
+# While a session goes on on board: seconds between tries to resume it on a server, and how long
+# each try waits.
+PROBE_EVERY = 1.0
+PROBE_TIMEOUT = 0.2
+
 
 def held_plan(response: pb.StepResponse) -> pb.Plan:
     """The commitment an answer holds, as OpenSession's `resume` takes it."""
@@ -72,3 +77,20 @@ def answer_from_plan(held: pb.Plan | None, now: pb.Plan) -> pb.StepResponse:
     if kept < remaining:
         response.broke_at = kept
     return response
+
+
+def following(held: pb.Plan | None) -> pb.StepResponse | None:
+    """The held plan one step on, as an answer: its action for the next step, unchecked; None
+    when the plan holds no action past the one executed."""
+    if held is None or len(held.actions) < 2:
+        return None
+    rest = held.actions[1:]
+    step = held.start_step + 1
+    return pb.StepResponse(
+        action=rest[0].action,
+        forecast=rest,
+        kept=len(rest),
+        f_t=step + 1 - rest[0].decided_at,
+        step=step,
+        episode=held.episode,
+    )

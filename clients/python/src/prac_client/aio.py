@@ -17,6 +17,7 @@ from prac_client import _core, errors
 from prac_client._channel import Balance, Tls, channel_options
 from prac_client._core import ArrayLike, Request, Response, T
 from prac_client._options import Growth
+from prac_client.onboard import Fallback, PathLike
 from prac_client._proto.prac.v1 import prac_pb2 as pb
 from prac_client._proto.prac.v1 import prac_pb2_grpc as pb_grpc
 from prac_client.types import Plan, PolicyInfo, StepResult
@@ -48,9 +49,11 @@ class Client(_core.ClientBase):
             self._channel = grpc.aio.secure_channel(target, self._credentials, options=options)
         self._stub = pb_grpc.PracStub(self._channel)
 
-    async def _call(self, rpc: grpc.aio.UnaryUnaryMultiCallable[Request, Response], request: Request) -> Response:
+    async def _call(
+        self, rpc: grpc.aio.UnaryUnaryMultiCallable[Request, Response], request: Request, timeout: float | None = None
+    ) -> Response:
         try:
-            return await rpc(request, timeout=self.timeout, metadata=self._metadata)
+            return await rpc(request, timeout=timeout or self.timeout, metadata=self._metadata)
         except grpc.RpcError as e:
             raise _core.rpc_error(e, request) from None
 
@@ -70,8 +73,10 @@ class Client(_core.ClientBase):
         every_critic: bool = False,
         support_limit: float | None = None,
         max_epsilon_coef: float | None = None,
+        fallback: Fallback | PathLike | None = None,
     ) -> _Opening:
-        """`await client.session(...)` or `async with client.session(...) as session`."""
+        """`await client.session(...)` or `async with client.session(...) as session`; `fallback`
+        as in `prac_client.Client.session`."""
         request = _core.open_request(
             policy,
             epsilon=epsilon,
@@ -84,7 +89,7 @@ class Client(_core.ClientBase):
             support_limit=support_limit,
             max_epsilon_coef=max_epsilon_coef,
         )
-        return _Opening(self, request)
+        return _Opening(self, request, fallback)
 
     async def close(self) -> None:
         await self._channel.close(grace=None)
@@ -99,14 +104,20 @@ class Client(_core.ClientBase):
 class _Opening:
     """An OpenSession in flight: awaitable, or an async context manager that closes the session."""
 
-    def __init__(self, client: Client, request: pb.OpenSessionRequest) -> None:
+    def __init__(self, client: Client, request: pb.OpenSessionRequest, fallback: Fallback | PathLike | None) -> None:
         self._client = client
         self._request = request
+        self._fallback = fallback
         self._session: Session | None = None
 
     async def _open(self) -> Session:
         opened = await self._client._call(self._client._stub.OpenSession, self._request)
-        return Session(self._client, opened, self._request.policy)
+        try:
+            checked = _core.fallback_for(self._fallback, opened)
+        except errors.PracError:
+            await self._client._call(self._client._stub.CloseSession, pb.CloseSessionRequest(session_id=opened.session_id))
+            raise
+        return Session(self._client, opened, self._request.policy, checked)
 
     def __await__(self) -> Generator[Any, None, Session]:
         return self._open().__await__()
@@ -126,8 +137,8 @@ class _Opening:
 class Session(_core.SessionBase):
     """The asyncio twin of `prac_client.Session`."""
 
-    def __init__(self, client: Client, opened: pb.OpenSessionResponse, policy: str) -> None:
-        super().__init__(opened, policy)
+    def __init__(self, client: Client, opened: pb.OpenSessionResponse, policy: str, fallback: Fallback | None = None) -> None:
+        super().__init__(opened, policy, fallback)
         self._client = client
         self._stream: grpc.aio.StreamStreamCall[pb.StepRequest, pb.StepResponse] | None = None
 
@@ -152,8 +163,8 @@ class Session(_core.SessionBase):
                 return await self._send(request)
             case _core.GetPlan(request):
                 return await self._client._call(self._client._stub.GetPlan, request)
-            case _core.OpenSession(request):
-                return await self._client._call(self._client._stub.OpenSession, request)
+            case _core.OpenSession(request, timeout):
+                return await self._client._call(self._client._stub.OpenSession, request, timeout)
             case _core.Pause(seconds):
                 await asyncio.sleep(seconds)
                 return None

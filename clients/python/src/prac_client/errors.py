@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import grpc
+
+if TYPE_CHECKING:
+    from prac_client.types import StepResult
 
 
 class PracError(Exception):
@@ -60,6 +65,14 @@ class PermissionDenied(PracError):
 
 class Unauthenticated(PracError):
     """The server wants a (valid) bearer token."""
+
+
+class FallbackFailed(PracError):
+    """The on-board fallback cannot be used (files missing or not the server's bundle, shapes
+    that do not fit) or failed to replan. `held` is the action the held plan committed for this
+    step, when it has one: what the session answered instead (see `Session.step`)."""
+
+    held: StepResult | None = None
 
 
 # What gRPC's core says, as INTERNAL, when the connection under a call broke (the server died or

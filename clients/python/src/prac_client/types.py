@@ -122,6 +122,8 @@ class StepResult:
     """t + 1 - i for the action executed now, decided at step i (1: decided now)."""
     step: int
     episode: int
+    local: bool = False
+    """Replanned on board by the session's fallback (no server answered), not served."""
 
     @property
     def forecast_length(self) -> int:
@@ -129,7 +131,7 @@ class StepResult:
         return int(self.forecast_actions.shape[0])
 
     @staticmethod
-    def from_proto(r: pb.StepResponse, act_dim: int, obs_dim: int) -> StepResult:
+    def from_proto(r: pb.StepResponse, act_dim: int, obs_dim: int, *, local: bool = False) -> StepResult:
         actions, observations, decided = _planned(r.forecast, act_dim, obs_dim)
         return StepResult(
             action=np.asarray(r.action, dtype=np.float32),
@@ -141,6 +143,7 @@ class StepResult:
             f_t=r.f_t,
             step=r.step,
             episode=r.episode,
+            local=local,
         )
 
 

@@ -85,14 +85,16 @@ class PlanGuard(_message.Message):
     def __init__(self, every_critic: _Optional[bool] = ..., support_limit: _Optional[float] = ..., max_epsilon_coef: _Optional[float] = ...) -> None: ...
 
 class OpenSessionRequest(_message.Message):
-    __slots__ = ("policy", "options", "resume")
+    __slots__ = ("policy", "options", "resume", "local_steps")
     POLICY_FIELD_NUMBER: _ClassVar[int]
     OPTIONS_FIELD_NUMBER: _ClassVar[int]
     RESUME_FIELD_NUMBER: _ClassVar[int]
+    LOCAL_STEPS_FIELD_NUMBER: _ClassVar[int]
     policy: str
     options: SessionOptions
     resume: Plan
-    def __init__(self, policy: _Optional[str] = ..., options: _Optional[_Union[SessionOptions, _Mapping]] = ..., resume: _Optional[_Union[Plan, _Mapping]] = ...) -> None: ...
+    local_steps: int
+    def __init__(self, policy: _Optional[str] = ..., options: _Optional[_Union[SessionOptions, _Mapping]] = ..., resume: _Optional[_Union[Plan, _Mapping]] = ..., local_steps: _Optional[int] = ...) -> None: ...
 
 class OpenSessionResponse(_message.Message):
     __slots__ = ("session_id", "policy", "options", "resumed_actions")
