@@ -192,6 +192,12 @@ class Session(_core.SessionBase):
                 return self._client._call(self._client._stub.GetPlan, request)
             case _core.OpenSession(request, timeout):
                 return self._client._call(self._client._stub.OpenSession, request, timeout)
+            case _core.Reach(timeout):
+                stub = self._client._stub
+                pending: _core.Pending = stub.ListPolicies.future(
+                    pb.ListPoliciesRequest(), timeout=timeout, metadata=self._client._metadata
+                )
+                return pending
             case _core.Pause(seconds):
                 time.sleep(seconds)
                 return None

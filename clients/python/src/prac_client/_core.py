@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Generator, TypeVar
+from typing import Generator, Protocol, TypeVar
 
 import grpc
 import numpy as np
@@ -140,16 +140,40 @@ class OpenSession:
 
 
 @dataclass(frozen=True)
+class Reach:
+    """Start a ListPolicies within `timeout` seconds without waiting for it: the reply is a
+    `Pending` that says whether a server answered. The local session asks this way, so that
+    looking for a server never holds up a control loop's step."""
+
+    timeout: float
+
+
+class Pending(Protocol):
+    """A call started by `Reach` (a grpc.Future, an asyncio.Task)."""
+
+    def done(self) -> bool: ...
+
+    def exception(self) -> BaseException | None: ...
+
+
+@dataclass(frozen=True)
 class Pause:
     """Wait before trying again; the reply is None."""
 
     seconds: float
 
 
-Io = SendStep | GetPlan | OpenSession | Pause
-Reply = pb.StepResponse | pb.Plan | pb.OpenSessionResponse | None
+Io = SendStep | GetPlan | OpenSession | Reach | Pause
+Reply = pb.StepResponse | pb.Plan | pb.OpenSessionResponse | Pending | None
 Flow = Generator[Io, Reply, T]
 """Logic that yields the I/O it needs and returns a T."""
+
+
+def _answered(pending: Pending) -> bool:
+    try:
+        return pending.exception() is None
+    except BaseException:  # cancelled
+        return False
 
 
 def _reply(reply: Reply, kind: type[Response]) -> Response:
@@ -183,6 +207,7 @@ class SessionBase:
         self.probe_timeout = _resume.PROBE_TIMEOUT
         """How long such a try waits for a server."""
         self._next_probe = 0.0
+        self._reaching: Pending | None = None
         # With a fallback, a call that times out (a link that stopped forwarding) is a lost
         # server too: the session goes local rather than failing the step.
         self._lost: tuple[type[errors.PracError], ...] = _resume.RESUMABLE + (
@@ -206,9 +231,8 @@ class SessionBase:
             )
         observed = observation_list(observation)
         new_episode = new_episode or self._new_episode
-        if self.local and time.monotonic() >= self._next_probe:
-            self._next_probe = time.monotonic() + self.probe_every
-            yield from self._probing()
+        if self.local:
+            yield from self._looking_for_a_server()
         if self.local:
             return self._step_on_board(observed, new_episode)
         give_up = time.monotonic() + patience
@@ -251,9 +275,24 @@ class SessionBase:
         self._unreported_local_steps += 1
         return StepResult.from_proto(response, self.policy.act_dim, self.policy.obs_dim, local=True)
 
+    def _looking_for_a_server(self) -> Flow[None]:
+        """While local: every `probe_every` seconds a call that waits for nobody asks whether a
+        server answers; once one did, the session is re-opened there with the local plan."""
+        reaching = self._reaching
+        if reaching is not None and reaching.done():
+            self._reaching = None
+            if _answered(reaching):
+                yield from self._probing()
+        if self._reaching is None and self.local and time.monotonic() >= self._next_probe:
+            self._next_probe = time.monotonic() + self.probe_every
+            pending = yield Reach(self.probe_timeout)
+            if pending is None or isinstance(pending, Message):
+                raise TypeError(f"expected a pending call, got {type(pending).__name__}")
+            self._reaching = pending
+
     def _probing(self) -> Flow[None]:
-        """While local: re-opens the session on a server with the local plan, if one answers
-        within `probe_timeout`; the next steps are served there."""
+        """Re-opens the session on a server with the local plan, if one answers within
+        `probe_timeout`; the next steps are served there."""
         assert self._fallback is not None
         request = pb.OpenSessionRequest(
             policy=self._policy_name, options=self._options_in_force, local_steps=self._unreported_local_steps

@@ -165,6 +165,11 @@ class Session(_core.SessionBase):
                 return await self._client._call(self._client._stub.GetPlan, request)
             case _core.OpenSession(request, timeout):
                 return await self._client._call(self._client._stub.OpenSession, request, timeout)
+            case _core.Reach(timeout):
+                call = self._client._stub.ListPolicies(
+                    pb.ListPoliciesRequest(), timeout=timeout, metadata=self._client._metadata
+                )
+                return asyncio.ensure_future(call)
             case _core.Pause(seconds):
                 await asyncio.sleep(seconds)
                 return None
