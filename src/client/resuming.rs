@@ -87,15 +87,22 @@ pub struct ResumingSession {
     pub probe_every: Duration,
     pub probe_timeout: Duration,
     next_probe: tokio::time::Instant,
+    /// The call looking for a server while local: whether one answered.
+    reaching: Option<tokio::task::JoinHandle<bool>>,
 }
 
 fn lost(status: &Status) -> bool {
     // NOT_FOUND / FAILED_PRECONDITION: the server does not know (or evicted) the session;
-    // UNAVAILABLE: no server answered.
+    // UNAVAILABLE: no server answered; a transport error (tonic's UNKNOWN): the connection
+    // broke under the call, as when the server is killed.
+    let broken = || {
+        std::error::Error::source(status)
+            .is_some_and(|e| e.downcast_ref::<tonic::transport::Error>().is_some())
+    };
     matches!(
         status.code(),
         Code::NotFound | Code::FailedPrecondition | Code::Unavailable
-    )
+    ) || (status.code() == Code::Unknown && broken())
 }
 
 impl ResumingSession {
@@ -123,6 +130,7 @@ impl ResumingSession {
             probe_every: Duration::from_secs(1),
             probe_timeout: Duration::from_millis(200),
             next_probe: tokio::time::Instant::now(),
+            reaching: None,
         };
         session.session_id = session.open_remote(None).await?;
         Ok(session)
@@ -211,26 +219,53 @@ impl ResumingSession {
         });
     }
 
+    /// While local: every `probe_every` a ListPolicies that the steps do not wait for asks
+    /// whether a server answers (a silent link must not hold up a control loop); once one did,
+    /// the session is re-opened there from the local plan, waiting at most `probe_timeout`.
+    async fn look_for_a_server(&mut self) {
+        if self.reaching.as_ref().is_some_and(|r| r.is_finished()) {
+            let reaching = self.reaching.take().expect("checked above");
+            if matches!(reaching.await, Ok(true)) {
+                let held = self.held.clone();
+                if let Ok(Ok(id)) =
+                    tokio::time::timeout(self.probe_timeout, self.open_remote(held)).await
+                {
+                    tracing::info!(
+                        local_steps = self.local_steps,
+                        "a server answers again; resumed there"
+                    );
+                    self.session_id = id;
+                    self.resumes += 1;
+                    self.local = false;
+                    if let Some(fallback) = &mut self.fallback {
+                        fallback.session = None;
+                    }
+                    return;
+                }
+            }
+        }
+        if self.reaching.is_none() && tokio::time::Instant::now() >= self.next_probe {
+            self.next_probe = tokio::time::Instant::now() + self.probe_every;
+            let mut client = self.client.clone();
+            let timeout = self.probe_timeout;
+            let request = self.request(proto::ListPoliciesRequest {});
+            self.reaching = Some(tokio::spawn(async move {
+                match request {
+                    Ok(request) => matches!(
+                        tokio::time::timeout(timeout, client.list_policies(request)).await,
+                        Ok(Ok(_))
+                    ),
+                    Err(_) => false,
+                }
+            }));
+        }
+    }
+
     /// One step; if the session was lost, resumes it (with the held plan) and steps again. With
     /// a fallback, a session no server has answered for the patience goes on locally.
     pub async fn step(&mut self, observation: &[f32], new_episode: bool) -> Result<Answer, Status> {
-        if self.local && tokio::time::Instant::now() >= self.next_probe {
-            self.next_probe = tokio::time::Instant::now() + self.probe_every;
-            let held = self.held.clone();
-            if let Ok(Ok(id)) =
-                tokio::time::timeout(self.probe_timeout, self.open_remote(held)).await
-            {
-                tracing::info!(
-                    local_steps = self.local_steps,
-                    "a server answers again; resumed there"
-                );
-                self.session_id = id;
-                self.resumes += 1;
-                self.local = false;
-                if let Some(fallback) = &mut self.fallback {
-                    fallback.session = None;
-                }
-            }
+        if self.local {
+            self.look_for_a_server().await;
         }
         if self.local {
             return self.step_local(observation, new_episode);

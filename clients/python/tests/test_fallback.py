@@ -222,3 +222,27 @@ async def test_the_asyncio_client_goes_on_on_board_and_resumes(toy: tuple[pathli
             await session.close()
     finally:
         server.stop()
+
+
+def test_the_docs_say_what_the_recorded_outage_runs_say() -> None:
+    records = fallback_proof.recorded()
+    assert {"hopper-kill", "hopper-proxy", "humanoid-kill", "humanoid-proxy"} <= set(records)
+    text = fallback_proof.DOCS.read_text()
+    assert fallback_proof.rewritten(text, records) == text, "run python clients/python/fallback_proof.py --docs"
+    for record in records.values():
+        summary = record["summary"]
+        # What the runs must show: no more falls with the outage than without it, every step
+        # contiguous, and the Hopper's returns within 2 %.
+        assert summary["falls_interrupted"] <= summary["falls_uninterrupted"], record["command"]
+        assert summary["all_contiguous"], record["command"]
+        if "hopper" in record["command"]:
+            assert summary["largest_return_difference"] <= 0.02, record["command"]
+
+
+def test_the_docs_say_what_the_recorded_on_board_costs_say() -> None:
+    import onboard_bench
+
+    results = json.loads(onboard_bench.RESULTS.read_text())
+    assert set(results["bundles"]) == {p.stem for p in SHIPPED}
+    text = onboard_bench.DOCS.read_text()
+    assert onboard_bench.rewritten(text, results) == text, "run python clients/python/onboard_bench.py --docs"

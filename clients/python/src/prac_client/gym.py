@@ -24,6 +24,8 @@ class EpisodeResult:
     """Steps at which the previous plan broke."""
     terminated: bool
     truncated: bool
+    local_steps: int = 0
+    """Steps replanned on board by the session's fallback (no server answered)."""
 
     @property
     def mean_forecast(self) -> float:
@@ -40,7 +42,8 @@ def run_episode(
     max_steps: int | None = None,
 ) -> EpisodeResult:
     """Resets `env` (with `seed`), starts a new episode on the session, and steps until the
-    episode ends (or `max_steps`), executing the server's action each step."""
+    episode ends (or `max_steps`), executing the server's action each step (or, for a session
+    opened with `fallback=` while no server answers, the one replanned on board)."""
     gamma = session.policy.gamma if gamma is None else gamma
     observation, _ = env.reset(seed=seed)
     result = session.reset(observation)
@@ -50,9 +53,10 @@ def run_episode(
     forecasts: list[int] = []
     replans = 0
     terminated = truncated = False
-    steps = 0
+    steps = local = 0
     while True:
         forecasts.append(result.f_t)
+        local += result.local
         if result.broke_at is not None:
             replans += 1
         observation, reward, terminated, truncated, _ = env.step(np.asarray(result.action, dtype=dtype))
@@ -71,4 +75,5 @@ def run_episode(
         replans=replans,
         terminated=bool(terminated),
         truncated=bool(truncated),
+        local_steps=local,
     )
