@@ -51,26 +51,39 @@ def prac_bin() -> str:
 
 
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    """A free port below the ephemeral range. A client that keeps connecting to a port in that
+    range while nothing listens there can be handed the same port as its own source (a TCP
+    self-connect), and then holds it against the server that restarts there."""
+    low = int(pathlib.Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    rng = np.random.default_rng()
+    for _ in range(100):
+        port = int(rng.integers(low // 2, low))
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError("no free port below the ephemeral range")
 
 
 class Server:
     """`prac serve` on a fixed address, so that a restarted one is found where the first was."""
 
     def __init__(self, bundles: pathlib.Path, address: str) -> None:
+        self.log = tempfile.TemporaryFile("w+")
         self.process = subprocess.Popen(
             [prac_bin(), "serve", "--listen", address, "--bundles", str(bundles)],
             stdout=subprocess.PIPE,
-            stderr=subprocess.DEVNULL,
+            stderr=self.log,
             text=True,
         )
         assert self.process.stdout is not None
         line = self.process.stdout.readline()
         if not line.startswith("listening on "):
             self.process.kill()
-            raise RuntimeError(f"the server did not start: {line!r}")
+            self.log.seek(0)
+            raise RuntimeError(f"the server did not start: {line!r} {self.log.read()[-2000:]}")
         deadline = time.monotonic() + 30
         with Client(address, timeout=2) as client:
             while True:
@@ -176,6 +189,8 @@ class Episode:
     fell: bool
     local_steps: int = 0
     contiguous: bool = True
+    # The first answer out of order: (t, its step, its episode).
+    first_gap: tuple[int, int, int] | None = None
     # The first served answer after the local steps: how many of the local plan's actions it kept,
     # and whether those are the local plan's (same actions, same decision steps).
     kept_after_return: int | None = None
@@ -214,7 +229,9 @@ def play(
         elapsed = time.perf_counter() - start
         if result.local:
             episode.local_step_us.append(elapsed * 1e6)
-        episode.contiguous &= result.step == t and result.episode == 0
+        if (result.step, result.episode) != (t, 0) and episode.first_gap is None:
+            episode.first_gap = (t, result.step, result.episode)
+            episode.contiguous = False
         if previous is not None and previous.local and not result.local and episode.kept_after_return is None:
             kept = result.kept
             episode.kept_after_return = kept
@@ -262,15 +279,19 @@ def run(domain: str, episodes: int, cut: str, at: int, back: int, epsilon_coef: 
                 with Client(target, timeout=10) as client:
                     reference = play(client, domain, env, seed + k, epsilon_coef=epsilon_coef)
 
+                down = False
+
                 def lose() -> None:
-                    nonlocal server
+                    nonlocal down
+                    down = True
                     if proxy is not None:
                         proxy.cut()
                     else:
                         server.kill()
 
                 def regain() -> None:
-                    nonlocal server
+                    nonlocal server, down
+                    down = False
                     if proxy is not None:
                         proxy.restore()
                     else:
@@ -289,7 +310,7 @@ def run(domain: str, episodes: int, cut: str, at: int, back: int, epsilon_coef: 
                         lose=lose,
                         regain=regain,
                     )
-                if back < 0 or interrupted.steps <= back:
+                if down:  # the episode ended before the link came back
                     regain()
                 pairs.append((reference, interrupted))
         finally:

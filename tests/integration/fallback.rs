@@ -33,9 +33,25 @@ fn serve_at(addr: &str, bundles: &std::path::Path) -> Server {
     Server::spawn(command)
 }
 
+/// A free address below the ephemeral port range: a client that keeps connecting to a port in
+/// that range while nothing listens can be handed it as its own source port (a TCP
+/// self-connect) and hold it against the server restarting there.
 fn free_address() -> String {
-    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    listener.local_addr().unwrap().to_string()
+    let range = std::fs::read_to_string("/proc/sys/net/ipv4/ip_local_port_range")
+        .unwrap_or_else(|_| "32768 60999".into());
+    let low: u16 = range
+        .split_whitespace()
+        .next()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(32768);
+    let mut rng = ChaCha8Rng::seed_from_u64(u64::from(std::process::id()));
+    (0..100)
+        .map(|_| rng.random_range(low / 2..low))
+        .find_map(|port| std::net::TcpListener::bind(("127.0.0.1", port)).ok())
+        .expect("a free port below the ephemeral range")
+        .local_addr()
+        .unwrap()
+        .to_string()
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

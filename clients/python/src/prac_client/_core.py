@@ -182,6 +182,13 @@ def _reply(reply: Reply, kind: type[Response]) -> Response:
     return reply
 
 
+class _Unknown:
+    """Whether a failed step was applied is not known yet."""
+
+
+UNKNOWN = _Unknown()
+
+
 class SessionBase:
     """A session's state and logic; the sync and asyncio sessions make its calls."""
 
@@ -241,13 +248,16 @@ class SessionBase:
             try:
                 response = _reply((yield SendStep(request)), pb.StepResponse)
             except self._lost:
-                if time.monotonic() > give_up:
-                    if self._fallback is None:
-                        raise
-                    self._fallback.start(self._resolved, self._held)
-                    self._next_probe = time.monotonic() + self.probe_every
-                    return self._step_on_board(observed, new_episode)
-                recovered = yield from self._recovering()
+                # Until a server says whether it applied the step, it is not sent again.
+                recovered: pb.StepResponse | None | _Unknown = UNKNOWN
+                while isinstance(recovered, _Unknown):
+                    if time.monotonic() > give_up:
+                        if self._fallback is None:
+                            raise
+                        self._fallback.start(self._resolved, self._held)
+                        self._next_probe = time.monotonic() + self.probe_every
+                        return self._step_on_board(observed, new_episode)
+                    recovered = yield from self._recovering()
                 if recovered is None:
                     continue
                 response = recovered
@@ -308,9 +318,10 @@ class SessionBase:
         self._unreported_local_steps = 0
         self._fallback.stop()
 
-    def _recovering(self) -> Flow[pb.StepResponse | None]:
+    def _recovering(self) -> Flow[pb.StepResponse | None | _Unknown]:
         """After a failed step: the step's answer if the server applied it after all (its plan
-        moved on), else None once a session exists to send it again to."""
+        moved on), None once a session exists to send it again to, or UNKNOWN while no server
+        answers (the step may have been applied: it must not be sent again yet)."""
         try:
             now = _reply((yield GetPlan(self._plan_request())), pb.Plan)
         except (errors.SessionNotFound, errors.SessionExpired):
@@ -318,7 +329,7 @@ class SessionBase:
             return None
         except self._lost:
             yield Pause(_resume.RETRY_PAUSE)
-            return None
+            return UNKNOWN
         if _resume.applied(self._held, now):
             return _resume.answer_from_plan(self._held, now)
         return None
