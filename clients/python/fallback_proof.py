@@ -327,7 +327,11 @@ def summary(pairs: list[tuple[Episode, Episode]]) -> dict[str, Any]:
         "episodes": len(pairs),
         "falls_uninterrupted": sum(r.fell for r, _ in pairs),
         "falls_interrupted": sum(e.fell for _, e in pairs),
-        "largest_return_difference": max(abs(e.episode_return - r.episode_return) / max(abs(r.episode_return), 1e-9) for r, e in pairs),
+        # Over the episodes in which neither run fell (a fall ends an episode early).
+        "largest_return_difference": max(
+            (abs(e.episode_return - r.episode_return) / max(abs(r.episode_return), 1e-9) for r, e in pairs if not (r.fell or e.fell)),
+            default=0.0,
+        ),
         "local_steps": sum(e.local_steps for _, e in pairs),
         "all_contiguous": all(e.contiguous for _, e in pairs),
         "all_continue_local_plan": all(e.continues_local_plan is not False for _, e in pairs),
@@ -349,14 +353,15 @@ def table(records: dict[str, dict[str, Any]]) -> str:
     cpus = sorted({r["cpu"] for r in records.values()})
     lines = [
         BEGIN,
-        "| run | episodes | falls uninterrupted / interrupted | largest return difference | steps on board | steps contiguous | server kept part of the local plan |",
+        "| run | episodes | falls uninterrupted / interrupted | largest return difference (neither fell) | steps on board | steps contiguous | server kept part of the local plan |",
         "|---|---:|---:|---:|---:|---:|---:|",
     ]
     for stem, record in sorted(records.items()):
         pairs = [(e["uninterrupted"], e["interrupted"]) for e in record["episodes"]]
         n = len(pairs)
         falls = f"{sum(r['fell'] for r, _ in pairs)} / {sum(e['fell'] for _, e in pairs)}"
-        difference = max(abs(e["episode_return"] - r["episode_return"]) / abs(r["episode_return"]) for r, e in pairs)
+        upright = [(r, e) for r, e in pairs if not (r["fell"] or e["fell"])]
+        difference = max(abs(e["episode_return"] - r["episode_return"]) / abs(r["episode_return"]) for r, e in upright)
         local = [e["local_steps"] for _, e in pairs]
         contiguous = sum(e["contiguous"] for _, e in pairs)
         kept = sum((e["kept_after_return"] or 0) >= 1 and bool(e["continues_local_plan"]) for _, e in pairs)

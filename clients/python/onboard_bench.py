@@ -67,9 +67,9 @@ def on_board_us(bundle: pathlib.Path, address: str, folder: pathlib.Path, steps:
     for _ in range(2):
         timings.clear()
         for t, (observation, _) in enumerate(recorded):
-            fallback.start(options, None if t == 0 else recorded[t - 1][1])
+            board = fallback.start(options, None if t == 0 else recorded[t - 1][1])
             start = time.perf_counter()
-            fallback.step(observation, t == 0)
+            board.step(observation, t == 0)
             timings.append((time.perf_counter() - start) * 1e6)
     return {
         "steps": len(timings),

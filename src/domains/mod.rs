@@ -4,6 +4,7 @@
 //! (rapier2d) and the 3D walkers `ant` and `humanoid` (rapier3d multibodies).
 
 mod episode;
+mod features;
 mod floor_contacts;
 mod lander;
 mod pendulum;
@@ -15,6 +16,7 @@ mod walker;
 mod walker_base;
 
 pub use episode::EpisodeTotals;
+pub use features::{Feature, Features, features};
 pub(crate) use lander::Lander;
 pub(crate) use pendulum::Pendulum;
 pub use planar::{Planar, PlanarBody, PlanarState};

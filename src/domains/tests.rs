@@ -1160,3 +1160,21 @@ fn control_periods_come_from_each_domains_spec() {
     }
     assert_eq!(control_period("toy"), None);
 }
+
+#[test]
+fn every_domain_names_each_observation_and_action_entry_once() {
+    for &name in DOMAINS {
+        let env = make(name).unwrap();
+        let spec = env.spec();
+        let f = features(name).unwrap_or_else(|| panic!("{name} has no features"));
+        assert_eq!(f.observation.len(), spec.obs_dim, "{name}");
+        assert_eq!(f.action.len(), spec.act_dim, "{name}");
+        for entries in [&f.observation, &f.action] {
+            let names: std::collections::HashSet<&str> =
+                entries.iter().map(|e| e.name.as_str()).collect();
+            assert_eq!(names.len(), entries.len(), "{name}: a name twice");
+            assert!(entries.iter().all(|e| !e.unit.is_empty()), "{name}");
+        }
+    }
+    assert_eq!(features("toy"), None);
+}

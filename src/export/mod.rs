@@ -67,6 +67,8 @@ pub struct Contract {
     pub action_kind: &'static str,
     /// Seconds per step on the bundle's domain, where prac knows the domain.
     pub control_period: Option<f64>,
+    /// What each observation and action entry is (name and unit), where prac knows the domain.
+    pub features: Option<crate::domains::Features>,
     pub gamma: f64,
     /// How the critics combine into one Q: "min" or "mean".
     pub q_aggregation: QAggregation,
@@ -192,6 +194,7 @@ fn write_all(policy: &std::sync::Arc<Policy>, folder: &Path) -> anyhow::Result<C
         },
         action_kind: "continuous",
         control_period: crate::domains::control_period(&m.domain),
+        features: policy.features(),
         gamma: m.gamma,
         q_aggregation: m.q_aggregation,
         value_scale: m.value_scale,

@@ -152,6 +152,10 @@ fn the_contract_names_the_files_and_what_replan_needs() {
     assert_eq!(json["observation"]["size"], 15);
     assert_eq!(json["action"]["low"].as_array().unwrap().len(), 3);
     assert!(json["control_period"].as_f64().unwrap() > 0.0);
+    let observation = json["features"]["observation"].as_array().unwrap();
+    assert_eq!(observation.len(), 15);
+    assert_eq!(observation[8]["name"], "thigh_position");
+    assert_eq!(json["features"]["action"][2]["name"], "foot_torque");
     assert_eq!(
         json["critics"].as_array().unwrap().len(),
         policy.critics.len()

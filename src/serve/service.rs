@@ -127,6 +127,10 @@ fn shutting_down() -> Status {
 }
 
 pub(super) fn policy_info(name: &str, policy: &Policy) -> proto::PolicyInfo {
+    let (observation_features, action_features) = match policy.features() {
+        Some(f) => (features_proto(f.observation), features_proto(f.action)),
+        None => Default::default(),
+    };
     let m = &policy.manifest;
     proto::PolicyInfo {
         name: name.to_string(),
@@ -147,7 +151,19 @@ pub(super) fn policy_info(name: &str, policy: &Policy) -> proto::PolicyInfo {
             m.default_guard.unwrap_or_default(),
         )),
         control_period: crate::domains::control_period(&m.domain),
+        observation_features,
+        action_features,
     }
+}
+
+fn features_proto(entries: Vec<crate::domains::Feature>) -> Vec<proto::Feature> {
+    entries
+        .into_iter()
+        .map(|f| proto::Feature {
+            name: f.name,
+            unit: f.unit,
+        })
+        .collect()
 }
 
 impl ServerState {

@@ -134,6 +134,7 @@ async fn list_open_stream_unary_plan_and_watch_with(args: &[&str]) {
     assert_eq!((toy.name.as_str(), toy.domain.as_str()), ("toy", "toy"));
     // No control period for a domain prac does not know.
     assert_eq!(toy.control_period, None);
+    assert!(toy.observation_features.is_empty() && toy.action_features.is_empty());
     assert_eq!((toy.obs_dim, toy.act_dim), (OBS as u32, ACT as u32));
     assert_eq!(toy.action_low, vec![-2.0, 0.0]);
     assert_eq!(toy.action_high, vec![2.0, 1.0]);

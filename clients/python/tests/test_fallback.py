@@ -59,6 +59,12 @@ def test_on_board_replan_decides_as_the_server_on_recorded_trajectories(
     with Client(shipped_server.address, timeout=10) as client:
         session = client.session(bundle.stem, epsilon_coef=0.005)
         options = session._resolved
+        # The contract's names and units are the server's (ListPolicies), one per entry.
+        info = session.policy
+        features = fallback.networks.contract["features"]
+        assert [(f.name, f.unit) for f in info.observation_features] == [(f["name"], f["unit"]) for f in features["observation"]]
+        assert [(f.name, f.unit) for f in info.action_features] == [(f["name"], f["unit"]) for f in features["action"]]
+        assert len(info.observation_features) == info.obs_dim and len(info.action_features) == info.act_dim
         observation, _ = env.reset(seed=3)
         for t in range(RECORDED_STEPS):
             result = session.step(observation, new_episode=t == 0)
@@ -71,8 +77,8 @@ def test_on_board_replan_decides_as_the_server_on_recorded_trajectories(
     env.close()
     differ, now, forecast = 0, 0.0, 0.0
     for t, (observation, served, _) in enumerate(recorded):
-        fallback.start(options, None if t == 0 else recorded[t - 1][2])
-        local = fallback.step(observation.tolist(), t == 0)
+        board = fallback.start(options, None if t == 0 else recorded[t - 1][2])
+        local = board.step(observation.tolist(), t == 0)
         ours = (local.kept, local.broke_at if local.HasField("broke_at") else None, local.f_t)
         if ours != (served.kept, served.broke_at, served.f_t):
             differ += 1
@@ -170,6 +176,27 @@ def test_a_fallback_folder_with_a_missing_or_changed_file_is_refused(
         Fallback(shapes)
     with pytest.raises(FallbackFailed, match="prac.json"):
         Fallback(tmp_path / "nowhere")
+
+
+def test_a_fallback_shared_by_sessions_keeps_each_ones_plan_apart(toy: tuple[pathlib.Path, pathlib.Path]) -> None:
+    """A session that ended while local leaves nothing behind for the next one on the same
+    fallback: that one starts served, at episode 0."""
+    port = fallback_proof.free_port()
+    address = f"127.0.0.1:{port}"
+    server = fallback_proof.Server(toy[0], address)
+    fallback = Fallback(toy[1])
+    try:
+        with Client(address, timeout=1, patience=0.05) as client:
+            first = client.session("pendulum", epsilon=0.05, fallback=fallback)
+            first.step([0.1, 0.2, 0.3], new_episode=True)
+            server.kill()
+            assert first.step([0.1, 0.2, 0.3]).local
+            server = fallback_proof.Server(toy[0], address)
+            second = client.session("pendulum", epsilon=0.05, fallback=fallback)
+            result = second.step([0.1, 0.2, 0.3], new_episode=True)
+            assert not result.local and (result.step, result.episode) == (0, 0)
+    finally:
+        server.stop()
 
 
 def test_a_failing_fallback_is_an_error_that_carries_the_held_plans_action(toy: tuple[pathlib.Path, pathlib.Path]) -> None:

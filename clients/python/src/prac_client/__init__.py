@@ -25,12 +25,13 @@ from prac_client.errors import (
     SessionNotFound,
     Unauthenticated,
 )
-from prac_client.types import Plan, PlanGuard, PolicyInfo, SessionOptions, StepResult, ValueScale
+from prac_client.types import Feature, Plan, PlanGuard, PolicyInfo, SessionOptions, StepResult, ValueScale
 
 __all__ = [
     "Client",
     "DeadlineExceeded",
     "FallbackFailed",
+    "Feature",
     "InvalidObservation",
     "InvalidOptions",
     "MessageTooLarge",

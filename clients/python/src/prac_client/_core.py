@@ -18,7 +18,7 @@ import numpy.typing as npt
 from google.protobuf.message import Message
 
 from prac_client import _resume, errors
-from prac_client.onboard import Fallback, PathLike
+from prac_client.onboard import Fallback, OnBoard, PathLike
 from prac_client._channel import Tls, credentials, metadata
 from prac_client._options import Growth, session_options
 from prac_client._proto.prac.v1 import prac_pb2 as pb
@@ -206,6 +206,8 @@ class SessionBase:
         self.resumes = 0
         """Times the session was re-opened with its plan on a server that did not know it."""
         self._fallback = fallback
+        # The session going on on board, while no server has it.
+        self._on_board: OnBoard | None = None
         self.local_steps = 0
         """Steps answered on board by the fallback."""
         self._unreported_local_steps = 0
@@ -224,7 +226,7 @@ class SessionBase:
     @property
     def local(self) -> bool:
         """Whether the session is going on on board now (no server answered past the patience)."""
-        return self._fallback is not None and self._fallback.active
+        return self._on_board is not None
 
     def _stepping(self, observation: ArrayLike, new_episode: bool, patience: float) -> Flow[StepResult]:
         """One step, resumed (up to `patience` seconds) where the server lost the session or none
@@ -254,7 +256,7 @@ class SessionBase:
                     if time.monotonic() > give_up:
                         if self._fallback is None:
                             raise
-                        self._fallback.start(self._resolved, self._held)
+                        self._on_board = self._fallback.start(self._resolved, self._held)
                         self._next_probe = time.monotonic() + self.probe_every
                         return self._step_on_board(observed, new_episode)
                     recovered = yield from self._recovering()
@@ -268,9 +270,9 @@ class SessionBase:
     def _step_on_board(self, observed: list[float], new_episode: bool) -> StepResult:
         """One step replanned by the fallback. If the fallback fails, the error carries the held
         plan's action for this step (and the session holds the rest of that plan)."""
-        assert self._fallback is not None
+        assert self._on_board is not None
         try:
-            response = self._fallback.step(observed, new_episode)
+            response = self._on_board.step(observed, new_episode)
         except errors.FallbackFailed as e:
             following = _resume.following(self._held)
             if following is not None and not new_episode:
@@ -316,7 +318,7 @@ class SessionBase:
         self.id = opened.session_id
         self.resumes += 1
         self._unreported_local_steps = 0
-        self._fallback.stop()
+        self._on_board = None
 
     def _recovering(self) -> Flow[pb.StepResponse | None | _Unknown]:
         """After a failed step: the step's answer if the server applied it after all (its plan

@@ -134,22 +134,16 @@ class OnnxNetworks:
 
 
 class Fallback:
-    """A session's on-board Replan: the exported networks, and the local session that takes over
-    the held plan when no server answers."""
+    """A policy on board: the exported networks, shareable by any number of sessions; each
+    session that goes local starts its own `OnBoard` session from them."""
 
     def __init__(self, folder: PathLike, *, threads: int = 1) -> None:
         self.networks = OnnxNetworks(folder, threads=threads)
         self.content_hash: str = self.networks.contract["content_hash"]
-        self._state: replan.PlanState | None = None
 
-    @property
-    def active(self) -> bool:
-        """Whether a local session is going on (from its first step until a server takes over)."""
-        return self._state is not None
-
-    def start(self, options: pb.ResolvedOptions, held: pb.Plan | None) -> None:
-        """Starts the local session with the options in force, resumed from `held` (the plan the
-        last answer committed) as a server would resume it."""
+    def start(self, options: pb.ResolvedOptions, held: pb.Plan | None) -> OnBoard:
+        """A local session with the options in force, resumed from `held` (the plan the last
+        answer committed) as a server would resume it."""
         if options.sampled:
             raise errors.FallbackFailed("the on-board fallback replans deterministic sessions only")
         state = replan.settings_from(options)
@@ -158,13 +152,19 @@ class Fallback:
                 replan.resume(state, self.networks, held, self.networks.low, self.networks.high)
             except ValueError as e:
                 raise errors.FallbackFailed(f"cannot resume the held plan on board: {e}") from e
+        return OnBoard(self.networks, state)
+
+
+class OnBoard:
+    """One session's Replan on board, from the moment no server answered until one takes it back."""
+
+    def __init__(self, networks: OnnxNetworks, state: replan.PlanState) -> None:
+        self.networks = networks
         self._state = state
 
     def step(self, observation: list[float], new_episode: bool) -> pb.StepResponse:
         """One Replan on board; the answer is what a server would give."""
         state = self._state
-        if state is None:
-            raise errors.FallbackFailed("the local session was not started")
         s = np.asarray(observation, dtype=F32)
         if s.shape != (self.networks.obs_dim,):
             raise errors.InvalidObservation(f"observation has {s.size} values; the policy expects {self.networks.obs_dim}")
@@ -172,7 +172,3 @@ class Fallback:
             raise errors.InvalidObservation("observation has a value that is not finite")
         ((kept, broke_at),) = replan.replan_batch(self.networks, [(state, s, new_episode or state.step is None)])
         return replan.response(state, self.networks, kept, broke_at)
-
-    def stop(self) -> None:
-        """Ends the local session (a server took it over)."""
-        self._state = None

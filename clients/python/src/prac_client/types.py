@@ -37,6 +37,14 @@ class PlanGuard:
 
 
 @dataclass(frozen=True)
+class Feature:
+    """One observation or action entry: its name and unit (or scaling)."""
+
+    name: str
+    unit: str
+
+
+@dataclass(frozen=True)
 class PolicyInfo:
     name: str
     domain: str
@@ -53,6 +61,10 @@ class PolicyInfo:
     default_guard: PlanGuard
     # Seconds per step on the bundle's domain; None where the server does not know the domain.
     control_period: float | None = None
+    # What each observation and action entry is, in order; empty where the server does not know
+    # the domain.
+    observation_features: tuple[Feature, ...] = ()
+    action_features: tuple[Feature, ...] = ()
 
     @staticmethod
     def from_proto(p: pb.PolicyInfo) -> PolicyInfo:
@@ -71,6 +83,8 @@ class PolicyInfo:
             format_version=p.format_version,
             default_guard=PlanGuard.from_proto(p.default_guard),
             control_period=p.control_period if p.HasField("control_period") else None,
+            observation_features=tuple(Feature(f.name, f.unit) for f in p.observation_features),
+            action_features=tuple(Feature(f.name, f.unit) for f in p.action_features),
         )
 
 

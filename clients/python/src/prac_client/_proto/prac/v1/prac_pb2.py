@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n%prac_client/_proto/prac/v1/prac.proto\x12\x07prac.v1\"\x15\n\x13ListPoliciesRequest\"=\n\x14ListPoliciesResponse\x12%\n\x08policies\x18\x01 \x03(\x0b\x32\x13.prac.v1.PolicyInfo\"\xe3\x02\n\nPolicyInfo\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0e\n\x06\x64omain\x18\x02 \x01(\t\x12\x0f\n\x07obs_dim\x18\x03 \x01(\r\x12\x0f\n\x07\x61\x63t_dim\x18\x04 \x01(\r\x12\x12\n\naction_low\x18\x05 \x03(\x02\x12\x13\n\x0b\x61\x63tion_high\x18\x06 \x03(\x02\x12\r\n\x05gamma\x18\x07 \x01(\x01\x12-\n\x0bvalue_scale\x18\x08 \x01(\x0b\x32\x13.prac.v1.ValueScaleH\x00\x88\x01\x01\x12\x14\n\x0c\x63ontent_hash\x18\t \x01(\t\x12\x15\n\rq_aggregation\x18\n \x01(\t\x12\x16\n\x0e\x66ormat_version\x18\x0b \x01(\r\x12)\n\rdefault_guard\x18\x0c \x01(\x0b\x32\x12.prac.v1.PlanGuard\x12\x1b\n\x0e\x63ontrol_period\x18\r \x01(\x01H\x01\x88\x01\x01\x42\x0e\n\x0c_value_scaleB\x11\n\x0f_control_period\"*\n\nValueScale\x12\x0c\n\x04v_pi\x18\x01 \x01(\x01\x12\x0e\n\x06v_rand\x18\x02 \x01(\x01\"\xd9\x01\n\x0eSessionOptions\x12\x11\n\x07\x65psilon\x18\x01 \x01(\x01H\x00\x12\x16\n\x0c\x65psilon_coef\x18\x02 \x01(\x01H\x00\x12\x0e\n\x04grow\x18\x03 \x01(\rH\x01\x12\x0f\n\x05\x66ixed\x18\x04 \x01(\rH\x01\x12\x13\n\x0bmax_horizon\x18\x05 \x01(\r\x12\x0f\n\x07sampled\x18\x06 \x01(\x08\x12\x0c\n\x04seed\x18\x07 \x01(\x04\x12&\n\x05guard\x18\x08 \x01(\x0b\x32\x12.prac.v1.PlanGuardH\x02\x88\x01\x01\x42\x0b\n\ttoleranceB\x08\n\x06growthB\x08\n\x06_guard\"R\n\tPlanGuard\x12\x14\n\x0c\x65very_critic\x18\x01 \x01(\x08\x12\x15\n\rsupport_limit\x18\x02 \x01(\x01\x12\x18\n\x10max_epsilon_coef\x18\x03 \x01(\x01\"\x92\x01\n\x12OpenSessionRequest\x12\x0e\n\x06policy\x18\x01 \x01(\t\x12(\n\x07options\x18\x02 \x01(\x0b\x32\x17.prac.v1.SessionOptions\x12\"\n\x06resume\x18\x03 \x01(\x0b\x32\r.prac.v1.PlanH\x00\x88\x01\x01\x12\x13\n\x0blocal_steps\x18\x04 \x01(\x04\x42\t\n\x07_resume\"\x92\x01\n\x13OpenSessionResponse\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12#\n\x06policy\x18\x02 \x01(\x0b\x32\x13.prac.v1.PolicyInfo\x12)\n\x07options\x18\x03 \x01(\x0b\x32\x18.prac.v1.ResolvedOptions\x12\x17\n\x0fresumed_actions\x18\x04 \x01(\r\"\x9e\x01\n\x0fResolvedOptions\x12\x0f\n\x07\x65psilon\x18\x01 \x01(\x01\x12\x13\n\x0bgrowth_mode\x18\x02 \x01(\t\x12\x0e\n\x06growth\x18\x03 \x01(\r\x12\x13\n\x0bmax_horizon\x18\x04 \x01(\r\x12\x0f\n\x07sampled\x18\x05 \x01(\x08\x12\x0c\n\x04seed\x18\x06 \x01(\x04\x12!\n\x05guard\x18\x07 \x01(\x0b\x32\x12.prac.v1.PlanGuard\")\n\x13\x43loseSessionRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\"%\n\x14\x43loseSessionResponse\x12\r\n\x05steps\x18\x01 \x01(\x04\"K\n\x0bStepRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\x13\n\x0bobservation\x18\x02 \x03(\x02\x12\x13\n\x0bnew_episode\x18\x03 \x01(\x08\"R\n\rPlannedAction\x12\x0e\n\x06\x61\x63tion\x18\x01 \x03(\x02\x12\x1d\n\x15predicted_observation\x18\x02 \x03(\x02\x12\x12\n\ndecided_at\x18\x03 \x01(\x04\"\xa6\x01\n\x0cStepResponse\x12\x0e\n\x06\x61\x63tion\x18\x01 \x03(\x02\x12(\n\x08\x66orecast\x18\x02 \x03(\x0b\x32\x16.prac.v1.PlannedAction\x12\x0c\n\x04kept\x18\x03 \x01(\r\x12\x15\n\x08\x62roke_at\x18\x04 \x01(\rH\x00\x88\x01\x01\x12\x0b\n\x03\x66_t\x18\x05 \x01(\x04\x12\x0c\n\x04step\x18\x06 \x01(\x04\x12\x0f\n\x07\x65pisode\x18\x07 \x01(\x04\x42\x0b\n\t_broke_at\"$\n\x0eGetPlanRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\"&\n\x10WatchPlanRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\"h\n\x04Plan\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\x0f\n\x07\x65pisode\x18\x02 \x01(\x04\x12\x12\n\nstart_step\x18\x03 \x01(\x04\x12\'\n\x07\x61\x63tions\x18\x04 \x03(\x0b\x32\x16.prac.v1.PlannedAction2\xca\x03\n\x04Prac\x12K\n\x0cListPolicies\x12\x1c.prac.v1.ListPoliciesRequest\x1a\x1d.prac.v1.ListPoliciesResponse\x12H\n\x0bOpenSession\x12\x1b.prac.v1.OpenSessionRequest\x1a\x1c.prac.v1.OpenSessionResponse\x12K\n\x0c\x43loseSession\x12\x1c.prac.v1.CloseSessionRequest\x1a\x1d.prac.v1.CloseSessionResponse\x12\x33\n\x04Step\x12\x14.prac.v1.StepRequest\x1a\x15.prac.v1.StepResponse\x12=\n\nStepStream\x12\x14.prac.v1.StepRequest\x1a\x15.prac.v1.StepResponse(\x01\x30\x01\x12\x31\n\x07GetPlan\x12\x17.prac.v1.GetPlanRequest\x1a\r.prac.v1.Plan\x12\x37\n\tWatchPlan\x12\x19.prac.v1.WatchPlanRequest\x1a\r.prac.v1.Plan0\x01\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n%prac_client/_proto/prac/v1/prac.proto\x12\x07prac.v1\"\x15\n\x13ListPoliciesRequest\"=\n\x14ListPoliciesResponse\x12%\n\x08policies\x18\x01 \x03(\x0b\x32\x13.prac.v1.PolicyInfo\"\xbe\x03\n\nPolicyInfo\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0e\n\x06\x64omain\x18\x02 \x01(\t\x12\x0f\n\x07obs_dim\x18\x03 \x01(\r\x12\x0f\n\x07\x61\x63t_dim\x18\x04 \x01(\r\x12\x12\n\naction_low\x18\x05 \x03(\x02\x12\x13\n\x0b\x61\x63tion_high\x18\x06 \x03(\x02\x12\r\n\x05gamma\x18\x07 \x01(\x01\x12-\n\x0bvalue_scale\x18\x08 \x01(\x0b\x32\x13.prac.v1.ValueScaleH\x00\x88\x01\x01\x12\x14\n\x0c\x63ontent_hash\x18\t \x01(\t\x12\x15\n\rq_aggregation\x18\n \x01(\t\x12\x16\n\x0e\x66ormat_version\x18\x0b \x01(\r\x12)\n\rdefault_guard\x18\x0c \x01(\x0b\x32\x12.prac.v1.PlanGuard\x12\x1b\n\x0e\x63ontrol_period\x18\r \x01(\x01H\x01\x88\x01\x01\x12.\n\x14observation_features\x18\x0e \x03(\x0b\x32\x10.prac.v1.Feature\x12)\n\x0f\x61\x63tion_features\x18\x0f \x03(\x0b\x32\x10.prac.v1.FeatureB\x0e\n\x0c_value_scaleB\x11\n\x0f_control_period\"%\n\x07\x46\x65\x61ture\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0c\n\x04unit\x18\x02 \x01(\t\"*\n\nValueScale\x12\x0c\n\x04v_pi\x18\x01 \x01(\x01\x12\x0e\n\x06v_rand\x18\x02 \x01(\x01\"\xd9\x01\n\x0eSessionOptions\x12\x11\n\x07\x65psilon\x18\x01 \x01(\x01H\x00\x12\x16\n\x0c\x65psilon_coef\x18\x02 \x01(\x01H\x00\x12\x0e\n\x04grow\x18\x03 \x01(\rH\x01\x12\x0f\n\x05\x66ixed\x18\x04 \x01(\rH\x01\x12\x13\n\x0bmax_horizon\x18\x05 \x01(\r\x12\x0f\n\x07sampled\x18\x06 \x01(\x08\x12\x0c\n\x04seed\x18\x07 \x01(\x04\x12&\n\x05guard\x18\x08 \x01(\x0b\x32\x12.prac.v1.PlanGuardH\x02\x88\x01\x01\x42\x0b\n\ttoleranceB\x08\n\x06growthB\x08\n\x06_guard\"R\n\tPlanGuard\x12\x14\n\x0c\x65very_critic\x18\x01 \x01(\x08\x12\x15\n\rsupport_limit\x18\x02 \x01(\x01\x12\x18\n\x10max_epsilon_coef\x18\x03 \x01(\x01\"\x92\x01\n\x12OpenSessionRequest\x12\x0e\n\x06policy\x18\x01 \x01(\t\x12(\n\x07options\x18\x02 \x01(\x0b\x32\x17.prac.v1.SessionOptions\x12\"\n\x06resume\x18\x03 \x01(\x0b\x32\r.prac.v1.PlanH\x00\x88\x01\x01\x12\x13\n\x0blocal_steps\x18\x04 \x01(\x04\x42\t\n\x07_resume\"\x92\x01\n\x13OpenSessionResponse\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12#\n\x06policy\x18\x02 \x01(\x0b\x32\x13.prac.v1.PolicyInfo\x12)\n\x07options\x18\x03 \x01(\x0b\x32\x18.prac.v1.ResolvedOptions\x12\x17\n\x0fresumed_actions\x18\x04 \x01(\r\"\x9e\x01\n\x0fResolvedOptions\x12\x0f\n\x07\x65psilon\x18\x01 \x01(\x01\x12\x13\n\x0bgrowth_mode\x18\x02 \x01(\t\x12\x0e\n\x06growth\x18\x03 \x01(\r\x12\x13\n\x0bmax_horizon\x18\x04 \x01(\r\x12\x0f\n\x07sampled\x18\x05 \x01(\x08\x12\x0c\n\x04seed\x18\x06 \x01(\x04\x12!\n\x05guard\x18\x07 \x01(\x0b\x32\x12.prac.v1.PlanGuard\")\n\x13\x43loseSessionRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\"%\n\x14\x43loseSessionResponse\x12\r\n\x05steps\x18\x01 \x01(\x04\"K\n\x0bStepRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\x13\n\x0bobservation\x18\x02 \x03(\x02\x12\x13\n\x0bnew_episode\x18\x03 \x01(\x08\"R\n\rPlannedAction\x12\x0e\n\x06\x61\x63tion\x18\x01 \x03(\x02\x12\x1d\n\x15predicted_observation\x18\x02 \x03(\x02\x12\x12\n\ndecided_at\x18\x03 \x01(\x04\"\xa6\x01\n\x0cStepResponse\x12\x0e\n\x06\x61\x63tion\x18\x01 \x03(\x02\x12(\n\x08\x66orecast\x18\x02 \x03(\x0b\x32\x16.prac.v1.PlannedAction\x12\x0c\n\x04kept\x18\x03 \x01(\r\x12\x15\n\x08\x62roke_at\x18\x04 \x01(\rH\x00\x88\x01\x01\x12\x0b\n\x03\x66_t\x18\x05 \x01(\x04\x12\x0c\n\x04step\x18\x06 \x01(\x04\x12\x0f\n\x07\x65pisode\x18\x07 \x01(\x04\x42\x0b\n\t_broke_at\"$\n\x0eGetPlanRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\"&\n\x10WatchPlanRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\"h\n\x04Plan\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\x0f\n\x07\x65pisode\x18\x02 \x01(\x04\x12\x12\n\nstart_step\x18\x03 \x01(\x04\x12\'\n\x07\x61\x63tions\x18\x04 \x03(\x0b\x32\x16.prac.v1.PlannedAction2\xca\x03\n\x04Prac\x12K\n\x0cListPolicies\x12\x1c.prac.v1.ListPoliciesRequest\x1a\x1d.prac.v1.ListPoliciesResponse\x12H\n\x0bOpenSession\x12\x1b.prac.v1.OpenSessionRequest\x1a\x1c.prac.v1.OpenSessionResponse\x12K\n\x0c\x43loseSession\x12\x1c.prac.v1.CloseSessionRequest\x1a\x1d.prac.v1.CloseSessionResponse\x12\x33\n\x04Step\x12\x14.prac.v1.StepRequest\x1a\x15.prac.v1.StepResponse\x12=\n\nStepStream\x12\x14.prac.v1.StepRequest\x1a\x15.prac.v1.StepResponse(\x01\x30\x01\x12\x31\n\x07GetPlan\x12\x17.prac.v1.GetPlanRequest\x1a\r.prac.v1.Plan\x12\x37\n\tWatchPlan\x12\x19.prac.v1.WatchPlanRequest\x1a\r.prac.v1.Plan0\x01\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -36,35 +36,37 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_LISTPOLICIESRESPONSE']._serialized_start=73
   _globals['_LISTPOLICIESRESPONSE']._serialized_end=134
   _globals['_POLICYINFO']._serialized_start=137
-  _globals['_POLICYINFO']._serialized_end=492
-  _globals['_VALUESCALE']._serialized_start=494
-  _globals['_VALUESCALE']._serialized_end=536
-  _globals['_SESSIONOPTIONS']._serialized_start=539
-  _globals['_SESSIONOPTIONS']._serialized_end=756
-  _globals['_PLANGUARD']._serialized_start=758
-  _globals['_PLANGUARD']._serialized_end=840
-  _globals['_OPENSESSIONREQUEST']._serialized_start=843
-  _globals['_OPENSESSIONREQUEST']._serialized_end=989
-  _globals['_OPENSESSIONRESPONSE']._serialized_start=992
-  _globals['_OPENSESSIONRESPONSE']._serialized_end=1138
-  _globals['_RESOLVEDOPTIONS']._serialized_start=1141
-  _globals['_RESOLVEDOPTIONS']._serialized_end=1299
-  _globals['_CLOSESESSIONREQUEST']._serialized_start=1301
-  _globals['_CLOSESESSIONREQUEST']._serialized_end=1342
-  _globals['_CLOSESESSIONRESPONSE']._serialized_start=1344
-  _globals['_CLOSESESSIONRESPONSE']._serialized_end=1381
-  _globals['_STEPREQUEST']._serialized_start=1383
-  _globals['_STEPREQUEST']._serialized_end=1458
-  _globals['_PLANNEDACTION']._serialized_start=1460
-  _globals['_PLANNEDACTION']._serialized_end=1542
-  _globals['_STEPRESPONSE']._serialized_start=1545
-  _globals['_STEPRESPONSE']._serialized_end=1711
-  _globals['_GETPLANREQUEST']._serialized_start=1713
-  _globals['_GETPLANREQUEST']._serialized_end=1749
-  _globals['_WATCHPLANREQUEST']._serialized_start=1751
-  _globals['_WATCHPLANREQUEST']._serialized_end=1789
-  _globals['_PLAN']._serialized_start=1791
-  _globals['_PLAN']._serialized_end=1895
-  _globals['_PRAC']._serialized_start=1898
-  _globals['_PRAC']._serialized_end=2356
+  _globals['_POLICYINFO']._serialized_end=583
+  _globals['_FEATURE']._serialized_start=585
+  _globals['_FEATURE']._serialized_end=622
+  _globals['_VALUESCALE']._serialized_start=624
+  _globals['_VALUESCALE']._serialized_end=666
+  _globals['_SESSIONOPTIONS']._serialized_start=669
+  _globals['_SESSIONOPTIONS']._serialized_end=886
+  _globals['_PLANGUARD']._serialized_start=888
+  _globals['_PLANGUARD']._serialized_end=970
+  _globals['_OPENSESSIONREQUEST']._serialized_start=973
+  _globals['_OPENSESSIONREQUEST']._serialized_end=1119
+  _globals['_OPENSESSIONRESPONSE']._serialized_start=1122
+  _globals['_OPENSESSIONRESPONSE']._serialized_end=1268
+  _globals['_RESOLVEDOPTIONS']._serialized_start=1271
+  _globals['_RESOLVEDOPTIONS']._serialized_end=1429
+  _globals['_CLOSESESSIONREQUEST']._serialized_start=1431
+  _globals['_CLOSESESSIONREQUEST']._serialized_end=1472
+  _globals['_CLOSESESSIONRESPONSE']._serialized_start=1474
+  _globals['_CLOSESESSIONRESPONSE']._serialized_end=1511
+  _globals['_STEPREQUEST']._serialized_start=1513
+  _globals['_STEPREQUEST']._serialized_end=1588
+  _globals['_PLANNEDACTION']._serialized_start=1590
+  _globals['_PLANNEDACTION']._serialized_end=1672
+  _globals['_STEPRESPONSE']._serialized_start=1675
+  _globals['_STEPRESPONSE']._serialized_end=1841
+  _globals['_GETPLANREQUEST']._serialized_start=1843
+  _globals['_GETPLANREQUEST']._serialized_end=1879
+  _globals['_WATCHPLANREQUEST']._serialized_start=1881
+  _globals['_WATCHPLANREQUEST']._serialized_end=1919
+  _globals['_PLAN']._serialized_start=1921
+  _globals['_PLAN']._serialized_end=2025
+  _globals['_PRAC']._serialized_start=2028
+  _globals['_PRAC']._serialized_end=2486
 # @@protoc_insertion_point(module_scope)

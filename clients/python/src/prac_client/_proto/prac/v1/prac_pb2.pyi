@@ -17,7 +17,7 @@ class ListPoliciesResponse(_message.Message):
     def __init__(self, policies: _Optional[_Iterable[_Union[PolicyInfo, _Mapping]]] = ...) -> None: ...
 
 class PolicyInfo(_message.Message):
-    __slots__ = ("name", "domain", "obs_dim", "act_dim", "action_low", "action_high", "gamma", "value_scale", "content_hash", "q_aggregation", "format_version", "default_guard", "control_period")
+    __slots__ = ("name", "domain", "obs_dim", "act_dim", "action_low", "action_high", "gamma", "value_scale", "content_hash", "q_aggregation", "format_version", "default_guard", "control_period", "observation_features", "action_features")
     NAME_FIELD_NUMBER: _ClassVar[int]
     DOMAIN_FIELD_NUMBER: _ClassVar[int]
     OBS_DIM_FIELD_NUMBER: _ClassVar[int]
@@ -31,6 +31,8 @@ class PolicyInfo(_message.Message):
     FORMAT_VERSION_FIELD_NUMBER: _ClassVar[int]
     DEFAULT_GUARD_FIELD_NUMBER: _ClassVar[int]
     CONTROL_PERIOD_FIELD_NUMBER: _ClassVar[int]
+    OBSERVATION_FEATURES_FIELD_NUMBER: _ClassVar[int]
+    ACTION_FEATURES_FIELD_NUMBER: _ClassVar[int]
     name: str
     domain: str
     obs_dim: int
@@ -44,7 +46,17 @@ class PolicyInfo(_message.Message):
     format_version: int
     default_guard: PlanGuard
     control_period: float
-    def __init__(self, name: _Optional[str] = ..., domain: _Optional[str] = ..., obs_dim: _Optional[int] = ..., act_dim: _Optional[int] = ..., action_low: _Optional[_Iterable[float]] = ..., action_high: _Optional[_Iterable[float]] = ..., gamma: _Optional[float] = ..., value_scale: _Optional[_Union[ValueScale, _Mapping]] = ..., content_hash: _Optional[str] = ..., q_aggregation: _Optional[str] = ..., format_version: _Optional[int] = ..., default_guard: _Optional[_Union[PlanGuard, _Mapping]] = ..., control_period: _Optional[float] = ...) -> None: ...
+    observation_features: _containers.RepeatedCompositeFieldContainer[Feature]
+    action_features: _containers.RepeatedCompositeFieldContainer[Feature]
+    def __init__(self, name: _Optional[str] = ..., domain: _Optional[str] = ..., obs_dim: _Optional[int] = ..., act_dim: _Optional[int] = ..., action_low: _Optional[_Iterable[float]] = ..., action_high: _Optional[_Iterable[float]] = ..., gamma: _Optional[float] = ..., value_scale: _Optional[_Union[ValueScale, _Mapping]] = ..., content_hash: _Optional[str] = ..., q_aggregation: _Optional[str] = ..., format_version: _Optional[int] = ..., default_guard: _Optional[_Union[PlanGuard, _Mapping]] = ..., control_period: _Optional[float] = ..., observation_features: _Optional[_Iterable[_Union[Feature, _Mapping]]] = ..., action_features: _Optional[_Iterable[_Union[Feature, _Mapping]]] = ...) -> None: ...
+
+class Feature(_message.Message):
+    __slots__ = ("name", "unit")
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    UNIT_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    unit: str
+    def __init__(self, name: _Optional[str] = ..., unit: _Optional[str] = ...) -> None: ...
 
 class ValueScale(_message.Message):
     __slots__ = ("v_pi", "v_rand")
