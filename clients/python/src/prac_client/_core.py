@@ -249,13 +249,13 @@ class SessionBase:
             request = pb.StepRequest(session_id=self.id, observation=observed, new_episode=new_episode)
             try:
                 response = _reply((yield SendStep(request)), pb.StepResponse)
-            except self._lost:
+            except self._lost as failure:
                 # Until a server says whether it applied the step, it is not sent again.
                 recovered: pb.StepResponse | None | _Unknown = UNKNOWN
                 while isinstance(recovered, _Unknown):
                     if time.monotonic() > give_up:
                         if self._fallback is None:
-                            raise
+                            raise failure
                         self._on_board = self._fallback.start(self._resolved, self._held)
                         self._next_probe = time.monotonic() + self.probe_every
                         return self._step_on_board(observed, new_episode)
