@@ -63,7 +63,27 @@ pub struct Manifest {
     /// falls. Absent: the paper's test.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub default_guard: Option<Guard>,
+    /// What each observation and action entry is, by name and unit (informational: a server
+    /// that does not know the field serves the bundle the same). Absent: prac's domain's, where
+    /// it knows the domain.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub features: Option<Features>,
     pub provenance: Provenance,
+}
+
+/// One entry of an observation or action.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Feature {
+    pub name: String,
+    /// Its unit or scaling, e.g. "rad", "0.3 m/s", "joint range mapped to [-1, 1]".
+    pub unit: String,
+}
+
+/// A policy's observation and action entries, in order.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Features {
+    pub observation: Vec<Feature>,
+    pub action: Vec<Feature>,
 }
 
 /// Per feature, the lowest and highest value an observation takes; null on a side where the
@@ -309,6 +329,22 @@ impl Manifest {
         }
         if let Some(guard) = &self.default_guard {
             self.validate_default_guard(guard)?;
+        }
+        if let Some(features) = &self.features {
+            for (field, entries, size) in [
+                ("observation", &features.observation, self.obs_dim),
+                ("action", &features.action, self.act_dim),
+            ] {
+                if entries.len() != size {
+                    return fail(
+                        &format!("features.{field}"),
+                        format!("has {} entries, the policy has {size}", entries.len()),
+                    );
+                }
+                if let Some(i) = entries.iter().position(|e| e.name.is_empty()) {
+                    return fail(&format!("features.{field}[{i}].name"), "is empty".into());
+                }
+            }
         }
         if self.format_version < FORMAT_VERSION_CRITIC_NORMS && self.critic.layer_norm {
             return fail(

@@ -705,6 +705,39 @@ fn bad_observation_bounds_are_named() {
     assert!(!json.contains("obs_bounds"), "{json}");
 }
 
+#[test]
+fn features_round_trip_take_precedence_and_bad_ones_are_named() {
+    use crate::manifest::{Feature, Features};
+    let entry = |name: &str| Feature {
+        name: name.into(),
+        unit: "1".into(),
+    };
+    let features = Features {
+        observation: ["a", "b", "c", "d"].map(entry).to_vec(),
+        action: ["x", "y"].map(entry).to_vec(),
+    };
+    let mut policy = small_policy();
+    assert_eq!(policy.features(), None, "a domain prac does not know");
+    policy.manifest.features = Some(features.clone());
+    let loaded = from_bytes(&to_bytes(&policy).unwrap(), &path()).unwrap();
+    assert_eq!(loaded.features(), Some(features.clone()));
+    let mut short = policy.clone();
+    short.manifest.features.as_mut().unwrap().action.pop();
+    assert_eq!(
+        load_reason(short),
+        "manifest.features.action: has 1 entries, the policy has 2"
+    );
+    let mut unnamed = policy;
+    unnamed.manifest.features.as_mut().unwrap().observation[2].name = String::new();
+    assert_eq!(
+        load_reason(unnamed),
+        "manifest.features.observation[2].name: is empty"
+    );
+    // A bundle without features writes none: its bytes stay as they were.
+    let json = serde_json::to_string(&small_policy().manifest).unwrap();
+    assert!(!json.contains("features"), "{json}");
+}
+
 fn guarded(policy: &Policy, guard: crate::plan::Guard) -> Policy {
     let mut policy = policy.clone();
     policy.manifest.format_version = crate::manifest::FORMAT_VERSION_DEFAULT_GUARD;

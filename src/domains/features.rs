@@ -8,21 +8,7 @@
 //! models PyBullet loads (hopper.xml, walker2d.xml, half_cheetah.xml, ant.xml,
 //! humanoid_symmetric.xml), in the order the robots in `robots/` build them.
 
-use serde::Serialize;
-
-/// One entry of an observation or action.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
-pub struct Feature {
-    pub name: String,
-    pub unit: String,
-}
-
-/// A domain's observation and action entries, in order.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
-pub struct Features {
-    pub observation: Vec<Feature>,
-    pub action: Vec<Feature>,
-}
+pub use crate::manifest::{Feature, Features};
 
 fn feature(name: impl Into<String>, unit: &str) -> Feature {
     Feature {

@@ -58,11 +58,15 @@ impl Policy {
         self.manifest.act_dim
     }
 
-    /// What each observation and action entry is, where the bundle's domain is one of prac's
-    /// and its sizes are that domain's (an imported bundle may reuse a name for other data).
+    /// What each observation and action entry is: the bundle's own, else its domain's where
+    /// the domain is one of prac's and its sizes are that domain's (an imported bundle may
+    /// reuse a name for other data).
     pub fn features(&self) -> Option<crate::domains::Features> {
-        crate::domains::features(&self.manifest.domain)
-            .filter(|f| f.observation.len() == self.obs_dim() && f.action.len() == self.act_dim())
+        self.manifest.features.clone().or_else(|| {
+            crate::domains::features(&self.manifest.domain).filter(|f| {
+                f.observation.len() == self.obs_dim() && f.action.len() == self.act_dim()
+            })
+        })
     }
 
     /// Maps an action from [-1, 1] to the action bounds.

@@ -169,6 +169,7 @@ pub fn test_manifest(
         obs_normalization: None,
         obs_bounds: None,
         default_guard: None,
+        features: None,
         provenance: Provenance {
             trainer: "random init (test)".to_string(),
             steps: 0,

@@ -93,6 +93,7 @@ pub(crate) fn manifest(
         obs_normalization: None,
         obs_bounds: Some(ObsBounds::from_limits(&spec.obs_low, &spec.obs_high)),
         default_guard: None,
+        features: crate::domains::features(spec.name),
         provenance: Provenance {
             trainer: "prac train (SAC + dynamics model, burn 0.22.1)".to_string(),
             steps,
